@@ -1,0 +1,1 @@
+"""knotlab app layer: the `knotlab` command line (and, later, the viser web app)."""

@@ -1,0 +1,64 @@
+"""Byte-deterministic .npz files with a JSON header: same content -> same bytes.
+
+NumPy's own savez stamps each zip member with the current time, so two saves of the same data
+differ. Knotlab promises bit-identical regeneration of its shipped files, so we write the zip
+ourselves with a fixed member timestamp. Reading uses ``np.load`` (no pickles, ever).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import CorruptFileError
+
+_FIXED_TIME = (1980, 1, 1, 0, 0, 0)
+HEADER_KEY = "header_json"
+
+
+def write_npz(path: str | Path, arrays: dict[str, np.ndarray], header: dict) -> Path:
+    """Write ``arrays`` plus a JSON ``header`` atomically to ``path`` (deflate-compressed)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    members = dict(sorted(arrays.items()))
+    members[HEADER_KEY] = np.frombuffer(
+        json.dumps(header, sort_keys=True).encode("utf-8"), dtype=np.uint8
+    )
+    tmp = path.with_name(path.name + ".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, arr in members.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
+            info = zipfile.ZipInfo(name + ".npy", date_time=_FIXED_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue(), compresslevel=6)
+    tmp.replace(path)  # atomic rename: a crash never leaves a half-written file behind
+    return path
+
+
+def read_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict]:
+    """Read arrays and header written by :func:`write_npz`; errors name the file and problem."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{kind} file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: np.array(data[k]) for k in data.files}
+    except Exception as exc:  # zipfile.BadZipFile, ValueError, EOFError, zlib.error, OSError ...
+        raise CorruptFileError(
+            f"{path}: cannot read {kind} file (truncated or not a knotlab file): {exc}"
+        ) from exc
+    if HEADER_KEY not in arrays:
+        raise CorruptFileError(f"{path}: {kind} file has no header")
+    try:
+        header = json.loads(arrays.pop(HEADER_KEY).tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CorruptFileError(f"{path}: {kind} header is not valid JSON") from exc
+    if not isinstance(header, dict):
+        raise CorruptFileError(f"{path}: {kind} header is not a JSON object")
+    return arrays, header
