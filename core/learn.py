@@ -306,7 +306,7 @@ class MaxMarginQLearner:
     verbose: bool = False
 
     def fit(self, data: TrainingData | Sequence[LabelledExecution]) -> QModel:
-        """Solve the QP on labelled data (or on executions, via ``featurizer``); returns a QModel."""
+        """Solve the QP on labelled data (or executions, via ``featurizer``); returns a QModel."""
         if not isinstance(data, TrainingData):
             if self.featurizer is None:
                 raise InvalidInputError(

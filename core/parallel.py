@@ -1,0 +1,95 @@
+"""Ordered, seeded work over local processes with a progress bar and one BLAS thread each.
+
+We parallelise over processes (one simulator per worker), never inside BLAS: each worker pins
+its BLAS/OpenMP pools to one thread so two workers on two cores do not oversubscribe them.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from typing import TypeVar
+
+from tqdm import tqdm
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def single_thread_blas() -> None:
+    """Limit BLAS/OpenMP to one thread in this process (call before heavy numpy work)."""
+    for var in _BLAS_VARS:
+        os.environ[var] = "1"
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # env vars above still bind pools created after this point
+        pass
+
+
+def default_workers() -> int:
+    """Worker processes to use by default: the cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _init_worker(initializer: Callable[[], None] | None) -> None:
+    single_thread_blas()
+    if initializer is not None:
+        initializer()
+
+
+def imap_processes(
+    fn: Callable[[T], R],
+    items: Iterable[T],
+    *,
+    workers: int | None = None,
+    initializer: Callable[[], None] | None = None,
+    desc: str | None = None,
+    total: int | None = None,
+    progress: bool = True,
+) -> Iterator[tuple[int, R]]:
+    """Yield (index, fn(item)) as items finish, over ``workers`` processes (1 = in-process)."""
+    items = list(items)
+    total = len(items) if total is None else total
+    workers = default_workers() if workers is None else max(1, workers)
+    bar = tqdm(total=total, desc=desc, disable=not progress, dynamic_ncols=True, leave=True)
+    try:
+        if workers == 1 or len(items) <= 1:
+            if initializer is not None:
+                initializer()
+            for i, item in enumerate(items):
+                result = fn(item)
+                bar.update(1)
+                yield i, result
+            return
+        ctx = mp.get_context("spawn")  # fork + pybullet/BLAS threads is unsafe
+        with ProcessPoolExecutor(
+            workers, mp_context=ctx, initializer=_init_worker, initargs=(initializer,)
+        ) as pool:
+            pending = {pool.submit(fn, item): i for i, item in enumerate(items)}
+            while pending:
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    i = pending.pop(fut)
+                    result = fut.result()
+                    bar.update(1)
+                    yield i, result
+    finally:
+        bar.close()
+
+
+def map_processes(fn: Callable[[T], R], items: Iterable[T], **kwargs) -> list[R]:
+    """Like :func:`imap_processes` but returns results in input order."""
+    items = list(items)
+    out: list = [None] * len(items)
+    for i, result in imap_processes(fn, items, **kwargs):
+        out[i] = result
+    return out
