@@ -1,0 +1,57 @@
+"""Exceptions raised by the labelling database, each naming the database, row or file at fault."""
+
+from __future__ import annotations
+
+from core.errors import CorruptFileError, InvalidInputError, KnotlabError
+
+
+class LabelingDbError(KnotlabError):
+    """Base class of every error the labelling database raises on purpose."""
+
+
+class DatabaseNotFoundError(LabelingDbError, FileNotFoundError):
+    """The database file does not exist and creating it was not asked for."""
+
+
+class NotADatabaseError(LabelingDbError, CorruptFileError):
+    """The file is not an SQLite database, or the database holds no knotlab schema."""
+
+
+class CorruptDatabaseError(LabelingDbError, CorruptFileError):
+    """The database file is truncated or damaged, or a stored value fails validation."""
+
+
+class SchemaVersionError(LabelingDbError):
+    """The database schema revision is not the one this knotlab uses."""
+
+
+class SchemaOutdatedError(SchemaVersionError):
+    """The database is from an older schema revision (or empty) and was not upgraded."""
+
+
+class SchemaTooNewError(SchemaVersionError):
+    """The database was written by a newer knotlab: its schema revision is unknown here."""
+
+
+class DatabaseBusyError(LabelingDbError):
+    """A write could not get the database lock within the retry budget."""
+
+
+class RecordNotFoundError(LabelingDbError, LookupError):
+    """A labeller, state, episode or model looked up by key does not exist."""
+
+
+class ConflictError(LabelingDbError):
+    """A write conflicts with what is stored (duplicate key, wrong step order, label in use)."""
+
+
+class InvalidRecordError(LabelingDbError, InvalidInputError):
+    """A record handed to the store (or read from an import file) is malformed."""
+
+
+class ImportRowError(InvalidRecordError):
+    """A row of a labels import file is malformed; names the file, line and field."""
+
+    def __init__(self, path: str, line: int, field: str, problem: str) -> None:
+        self.path, self.line, self.field, self.problem = path, line, field, problem
+        super().__init__(f"{path}, line {line}, field {field!r}: {problem} (nothing was imported)")
