@@ -9,6 +9,9 @@ import sys
 # Each module exposes `register(subparsers)` and sets `func` on its parsers.
 COMMAND_MODULES: tuple[str, ...] = (
     "app.cmd_tie",
+    "app.cmd_db",
+    "app.cmd_labels",
+    "app.cmd_label",
 )
 
 

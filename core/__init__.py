@@ -1,1 +1,1 @@
-"""knotlab core: the science (rope world, knot test, registration, learning). No web, no database."""
+"""knotlab core: the science (rope world, knot test, registration, learning); no web, no DB."""
