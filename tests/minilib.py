@@ -1,0 +1,135 @@
+"""A tiny but real demo library and task sets, built in the simulator once per test session.
+
+The library holds rigid copies of the fixed overhand sequence (`core.knot_sequence`): the straight
+rope, a copy shifted 5 cm in y and (with ``n_demos=3``) a copy turned 10 degrees about z. Each
+segment is executed in a `RopeWorld` to record its pre/post rope and observed cloud, so every demo
+is a real, knot-tying demonstration. Tasks are small seeded perturbations of the demo starts,
+settled. Everything is cached (``lru_cache``) so test files share one build per process.
+
+Use::
+
+    from tests.minilib import mini_library, mini_tasks, mini_executions
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from core.demos import DemoLibrary, DemoSegment, segment_key
+from core.knot_sequence import overhand_sequence
+from core.labels import LabelledExecution, LabelledStep
+from core.rope import straight_rope
+from core.tasks import RopeTask, TaskSet, task_seed
+
+# (shift in metres, turn about z in degrees) of each demonstration, in start-index order.
+_POSES: tuple[tuple[tuple[float, float, float], float], ...] = (
+    ((0.0, 0.0, 0.0), 0.0),
+    ((0.0, 0.05, 0.0), 0.0),
+    ((0.02, -0.03, 0.0), 10.0),
+)
+
+
+def _rot_z(degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@lru_cache(maxsize=4)
+def mini_library(n_demos: int = 2) -> DemoLibrary:
+    """``n_demos`` (1-3) rigid copies of the 3-step overhand demo, executed in simulation."""
+    from core.sim import RopeWorld
+
+    if not 1 <= n_demos <= len(_POSES):
+        raise ValueError(f"n_demos must be 1..{len(_POSES)}, got {n_demos}")
+    segments = []
+    with RopeWorld() as world:
+        for start in range(n_demos):
+            shift, turn = _POSES[start]
+            rot = _rot_z(turn)
+            nodes = straight_rope() @ rot.T + np.asarray(shift)
+            world.reset(nodes)
+            for step, traj in enumerate(overhand_sequence()):
+                moved = traj.with_positions(
+                    traj.positions_gt3 @ rot.T + np.asarray(shift),
+                    np.einsum("ij,gtjk->gtik", rot, traj.rotations_gt33),
+                )
+                pre = world.rope_nodes()
+                cloud = world.observe()
+                world.reset(pre)  # what the library records is what a replay starts from
+                world.execute(moved)
+                segments.append(
+                    DemoSegment(
+                        segment_key(start, step),
+                        start,
+                        step,
+                        pre,
+                        cloud,
+                        moved,
+                        world.rope_nodes(),
+                        {"shift": list(shift), "turn_deg": turn},
+                    )
+                )
+    return DemoLibrary(segments, {"source": "tests.minilib", "n_demos": n_demos})
+
+
+@lru_cache(maxsize=8)
+def mini_tasks(
+    n_tasks: int = 3, split: str = "test", rho: float = 0.02, n_demos: int = 2
+) -> TaskSet:
+    """``n_tasks`` settled starts perturbing the mini library's demo starts (seeded, small rho)."""
+    from core.rope import perturb_rope
+    from core.sim import RopeWorld
+
+    starts = mini_library(n_demos).start_states()
+    keys = sorted(starts)
+    tasks = []
+    with RopeWorld() as world:
+        for i in range(n_tasks):
+            seed = task_seed(7, split, i)
+            source = keys[i % len(keys)]
+            world.reset(perturb_rope(starts[source], rho, n_centres=3, seed=seed))
+            world.settle(0.5)
+            tasks.append(RopeTask(f"mini-{split}-{i:04d}", world.rope_nodes(), source, seed))
+    meta = {"split": split, "level": "mini", "rho": rho, "seed": 7, "n_demos": n_demos}
+    return TaskSet(tasks, meta)
+
+
+def mini_executions(n_demos: int = 2) -> list[LabelledExecution]:
+    """Expert executions replaying each demo on its own start: t0, t1 progress, t2 ties the knot."""
+    lib = mini_library(n_demos)
+    out = []
+    for start in sorted(lib.start_states()):
+        segs = sorted((s for s in lib if s.start_index == start), key=lambda s: s.step_index)
+        steps = tuple(
+            LabelledStep(
+                step_index=i,
+                cloud_n3=seg.pre_cloud_n3,
+                chosen_demo=seg.key,
+                outcome="knot" if i == len(segs) - 1 else "progressed",
+                rope_nodes_k3=seg.pre_nodes_k3,
+            )
+            for i, seg in enumerate(segs)
+        )
+        out.append(
+            LabelledExecution(
+                f"mini-exec-{start}",
+                "oracle",
+                "minilib",
+                steps,
+                ended_in_knot=True,
+                task_id=f"mini-demo-{start}",
+                library_hash=lib.content_hash(),
+            )
+        )
+    return out
+
+
+def write_mini_files(directory: Path, n_tasks: int = 3, n_demos: int = 2) -> tuple[Path, Path]:
+    """Save the mini library and test task set under ``directory``; returns their paths."""
+    directory = Path(directory)
+    lib_path = mini_library(n_demos).save(directory / "mini_demos.npz")
+    tasks_path = mini_tasks(n_tasks, "test", n_demos=n_demos).save(directory / "mini_tasks.npz")
+    return lib_path, tasks_path
