@@ -123,10 +123,22 @@ def run_episode(
 ) -> EpisodeRecord:
     """Reset the world to the start rope and act with ``policy`` until a knot or ``max_steps``."""
     t_episode = time.perf_counter()
-    world.reset(start_nodes_k3)
     steps: list[StepRecord] = []
     failure_kind: str | None = "no_knot"
     error: str | None = None
+    try:
+        world.reset(start_nodes_k3)
+    except _NUMERIC_ERRORS as exc:  # a bad start state is this episode's failure, not the run's
+        log.warning("task %s: cannot reset to its start state: %s", task_id, exc)
+        return EpisodeRecord(
+            task_id,
+            policy.name,
+            False,
+            [],
+            "error",
+            f"{type(exc).__name__}: {exc}",
+            time.perf_counter() - t_episode,
+        )
     keys = featurizer.library.keys
     for step in range(max_steps):
         nodes_before = world.rope_nodes()

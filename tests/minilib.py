@@ -133,3 +133,20 @@ def write_mini_files(directory: Path, n_tasks: int = 3, n_demos: int = 2) -> tup
     lib_path = mini_library(n_demos).save(directory / "mini_demos.npz")
     tasks_path = mini_tasks(n_tasks, "test", n_demos=n_demos).save(directory / "mini_tasks.npz")
     return lib_path, tasks_path
+
+
+def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
+    """The mini executions as a `knotlab labels export` JSONL file (what `knotlab train` reads)."""
+    from datetime import UTC, datetime
+
+    from labeling_db.interchange import write_labels
+    from labeling_db.store import StoredExecution
+
+    when = datetime(2024, 1, 1, tzinfo=UTC)
+    items = [
+        StoredExecution(e, started_at=when, finished_at=when) for e in mini_executions(n_demos)
+    ]
+    path = Path(path)
+    with open(path, "w", encoding="utf-8") as fh:
+        write_labels(items, fh, "jsonl")
+    return path

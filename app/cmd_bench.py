@@ -1,0 +1,207 @@
+"""`knotlab bench`: Table I — run policies on a level's test tasks, resumably, in parallel."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+
+from app import defaults
+from core.errors import KnotlabError
+
+DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
+
+
+def _fail(message: str) -> int:
+    print(f"knotlab bench: error: {message}", file=sys.stderr)
+    return 2
+
+
+def resolve_model_path(arg: str | None, out_dir: Path) -> Path | None:
+    """--model, else OUT/model.npz, else static/model_default.npz; None when neither exists."""
+    if arg is not None:
+        return Path(arg)
+    for candidate in (out_dir / "model.npz", defaults.MODEL_PATH):
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _run(args: argparse.Namespace) -> int:
+    from core.bench import (
+        BenchMismatchError,
+        format_table,
+        needs_model,
+        run_bench,
+        validate_policies,
+    )
+    from core.demos import DemoLibrary
+    from core.learn import QModel
+    from core.tasks import TaskSet
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    policies = [p.strip() for p in args.policies.split(",") if p.strip()]
+    try:
+        validate_policies(policies)
+    except KnotlabError as exc:
+        return _fail(str(exc))
+    out_dir = Path(args.out)
+    library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
+    task_path = Path(args.task_set) if args.task_set else defaults.task_set_path(args.level, "test")
+    try:
+        library = DemoLibrary.load(library_path)
+        task_set = TaskSet.load(task_path)
+    except FileNotFoundError as exc:
+        return _fail(f"{exc} (make it with `knotlab demos` / `knotlab tasks`, or pass a path)")
+    except KnotlabError as exc:
+        return _fail(str(exc))
+    model = None
+    model_path: Path | None = None
+    learned = [p for p in policies if needs_model(p)]
+    if learned:
+        model_path = resolve_model_path(args.model, out_dir)
+        if model_path is None or not model_path.exists():
+            where = model_path or f"{out_dir / 'model.npz'} or {defaults.MODEL_PATH}"
+            return _fail(
+                f"policies {', '.join(learned)} need a trained model and there is none at "
+                f"{where}: run `knotlab train --out PATH` first (on the TRAIN labels), "
+                "then pass --model PATH"
+            )
+        try:
+            model = QModel.load(model_path)
+        except KnotlabError as exc:
+            return _fail(str(exc))
+    arguments = {
+        "policies": policies,
+        "tasks": args.tasks,
+        "level": args.level,
+        "out": str(out_dir),
+        "library": str(library_path),
+        "task_set": str(task_path),
+        "model": str(model_path) if model_path else None,
+        "workers": args.workers,
+        "engine": args.engine,
+        "seed": args.seed,
+        "noise": args.noise,
+        "first": args.first,
+        "max_steps": args.max_steps,
+        "argv": sys.argv,
+    }
+    n_tasks = min(args.tasks, len(task_set)) if args.tasks else len(task_set)
+    try:
+        result = run_bench(
+            out_dir,
+            library=library,
+            task_set=task_set,
+            policies=policies,
+            n_tasks=n_tasks,
+            model=model,
+            seed=args.seed,
+            noise=args.noise,
+            max_steps=args.max_steps,
+            first=args.first,
+            workers=args.workers,
+            engine=args.engine,
+            ray_address=args.ray_address,
+            progress=not args.no_progress,
+            arguments=arguments,
+        )
+    except BenchMismatchError as exc:
+        return _fail(str(exc))
+    except KnotlabError as exc:
+        return _fail(str(exc))
+    level = task_set.metadata.get("level", args.level)
+    print(
+        f"knotlab bench: {level} test, {n_tasks} tasks, {result.ran} episodes run, "
+        f"{result.skipped} resumed from {result.paths['outcomes']}, {result.wall_s:.1f} s"
+    )
+    print(
+        format_table(
+            result.rows, f"Table I ({level} level, success = knot within {args.max_steps} steps)"
+        )
+    )
+    if result.common_rows is not None:
+        n_common = min(r["n"] for r in result.rows)
+        print()
+        print(format_table(result.common_rows, f"Table I on the first {n_common} tasks only"))
+    print(f"results: {result.paths['results']}   chart: {result.paths['chart']}")
+    if args.json:
+        summary = {
+            "results": result.paths["results"],
+            "chart": result.paths["chart"],
+            "ran": result.ran,
+            "resumed": result.skipped,
+            "wall_s": round(result.wall_s, 3),
+            "table": result.rows,
+        }
+        print(json.dumps(_json_safe(summary)))
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `knotlab bench` to the command line."""
+    p = subparsers.add_parser(
+        "bench",
+        help="Table I: success rates of demo-selection policies on the test tasks",
+        description=(
+            "Run each policy on the first --tasks tasks of a level's TEST set and print Table I. "
+            "Resumable: rerunning with the same --out skips finished (policy, task) episodes."
+        ),
+    )
+    p.add_argument(
+        "--policies",
+        default=DEFAULT_POLICIES,
+        help=f"comma-separated: nn, greedy, la<D>x<W>, oracle (default {DEFAULT_POLICIES})",
+    )
+    p.add_argument("--tasks", type=int, default=500, help="first N test tasks (default 500)")
+    p.add_argument("--level", choices=defaults.LEVELS, default="main")
+    p.add_argument("--out", required=True, help="results directory (resumed if it exists)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help=f"QModel for greedy / lookahead (default OUT/model.npz, else {defaults.MODEL_PATH})",
+    )
+    p.add_argument(
+        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
+    )
+    p.add_argument(
+        "--task-set",
+        default=None,
+        help="test task-set file (default static/tasks_<level>_test.npz)",
+    )
+    p.add_argument(
+        "--workers", type=int, default=None, help="worker processes/actors (default: cores)"
+    )
+    p.add_argument("--engine", choices=("local", "ray"), default="local")
+    p.add_argument(
+        "--ray-address", default=None, help="Ray cluster address (default: start a local Ray)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="observation-noise seed (default 0)")
+    p.add_argument(
+        "--noise", type=float, default=0.0, help="observation noise sigma, metres (default 0)"
+    )
+    p.add_argument(
+        "--first",
+        type=int,
+        default=None,
+        help="run the search policies (la*, oracle) on the first K tasks only (default: all)",
+    )
+    p.add_argument(
+        "--max-steps", type=int, default=5, help="steps per episode (default 5, the paper's)"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    p.set_defaults(func=_run)

@@ -1,0 +1,55 @@
+"""`knotlab train` on the tiny real library: split, fit, validation metrics, saved model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app import cli
+from app.cmd_train import split_executions
+from core.learn import QModel
+from tests.minilib import mini_library, write_mini_labels
+
+pytestmark = pytest.mark.xdist_group("bench")
+
+
+def test_split_is_by_execution_seeded_and_keeps_both_sides():
+    train, val = split_executions(10, 0.2, seed=3)
+    assert len(val) == 2 and len(train) == 8
+    assert set(train).isdisjoint(val) and set(train) | set(val) == set(range(10))
+    again = split_executions(10, 0.2, seed=3)
+    assert np.array_equal(train, again[0]) and np.array_equal(val, again[1])
+    assert len(split_executions(2, 0.2, seed=0)[1]) == 1  # at least one held out
+    assert len(split_executions(5, 0.0, seed=0)[1]) == 0
+    with pytest.raises(ValueError):
+        split_executions(5, 1.0, seed=0)
+
+
+def test_train_from_a_labels_file_saves_a_model_and_reports_validation(tmp_path, capsys):
+    lib = mini_library(2).save(tmp_path / "lib.npz")
+    labels = write_mini_labels(tmp_path / "labels.jsonl")
+    out = tmp_path / "model.npz"
+    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
+    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    assert cli.main(args) == 0
+    text = capsys.readouterr().out
+    summary = json.loads(text.strip().splitlines()[-1])
+    assert "validation: top-1" in text
+    assert summary["n_train_executions"] == 1 and summary["n_validation_executions"] == 1
+    assert summary["validation"]["n_states"] == 3
+    assert 0 <= summary["validation"]["top1"] <= 1
+    assert summary["train_metrics"]["train_top1"] == 1.0  # 3 states, separable
+    model = QModel.load(out)
+    assert model.content_hash() == summary["model_hash"]
+    assert model.feature_spec["library_hash"] == mini_library(2).content_hash()
+    assert model.metrics["training_run"]["validation"]["n_states"] == 3
+
+
+def test_train_with_a_missing_labels_file_fails_clearly(tmp_path, capsys):
+    lib = mini_library(2).save(tmp_path / "lib.npz")
+    args = ["train", "--labels", str(tmp_path / "none.jsonl"), "--library", str(lib)]
+    assert cli.main([*args, "--out", str(tmp_path / "m.npz")]) == 2
+    assert "labels" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
