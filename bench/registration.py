@@ -25,7 +25,15 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from core.registration import EXACT, SCAN, LibraryRegistrar, register  # noqa: E402
+from core.registration import (  # noqa: E402
+    _PHASES,
+    EXACT,
+    SCAN,
+    LibraryRegistrar,
+    _rpm_batch,
+    _scene_side,
+    register,
+)
 from core.synthetic import corrupt, library, rope_cloud, smooth_warp  # noqa: E402
 
 N_DEMOS = 148
@@ -73,12 +81,10 @@ def _scan_bench(n_points: int, workers: int, repeats: int, rng: np.random.Genera
     scan_s, result = _median_time(
         lambda: registrar.scan(scene, demos, key=f"bench-{n_points}"), repeats
     )
-    phases: dict[str, float] = {}
     single = LibraryRegistrar(SCAN, chunk_size=16, n_workers=1)
     single.prepare(demos, key="p")
     single_s, _ = _median_time(lambda: single.scan(scene, demos, key="p"), max(3, repeats // 2))
-    for _ in range(3):
-        single.scan(scene, demos, key="p", timings=phases)
+    phases = _phase_split(single.prepare(demos, key="p"), _scene_side(scene, SCAN), repeats)
     loop = LibraryRegistrar(SCAN, chunk_size=1, n_workers=1)
     loop.prepare(demos, key="l")
     loop_s, _ = _median_time(lambda: loop.scan(scene, demos, key="l"), 3)
@@ -95,9 +101,56 @@ def _scan_bench(n_points: int, workers: int, repeats: int, rng: np.random.Genera
         "fits_per_s_1worker": N_DEMOS / single_s,
         "loop_precomputed_s": loop_s,
         "loop_cold_s": cold_loop_s,
-        "phases_ms_1worker": {k: 1000 * v / 3 for k, v in phases.items()},
+        "phases_ms_1worker": phases,
         "all_ok": bool(result.ok_a.all()),
     }
+
+
+def _phase_split(demo, scene, repeats: int) -> dict[str, float]:
+    """ms per whole-library scan, 1 thread, per phase: the fused kernel is run stopping after
+    each phase in turn (`stop_after`) and the medians are differenced."""
+    idx = np.arange(len(demo))
+    out: dict[str, float] = {}
+    prev = 0.0
+    for stop, name in enumerate(_PHASES):
+        runs = []
+        for _ in range(max(3, repeats)):
+            t: dict[str, float] = {}
+            _rpm_batch(demo, idx, scene, SCAN, False, t, stop)
+            runs.append(t)
+        kernel = 1000 * float(np.median([t["rpm kernel"] for t in runs]))
+        out[name] = kernel - prev
+        prev = kernel
+    out["setup"] = 1000 * float(np.median([t["setup"] for t in runs]))
+    out["costs"] = 1000 * float(np.median([t["costs"] for t in runs]))
+    return out
+
+
+def _start_up() -> dict:
+    """Seconds for a fresh interpreter to import and run its first scan-preset registration,
+    with numba's on-disk cache as it is (warm) and with an empty cache dir (cold: compiles)."""
+    import subprocess
+    import tempfile
+
+    code = (
+        "import time; t0 = time.perf_counter();"
+        "import numpy as np; from core.registration import register, SCAN;"
+        "from core.synthetic import rope_cloud; c = rope_cloud(np.random.default_rng(0), 100);"
+        "register(c, c + 0.01, SCAN); print(time.perf_counter() - t0)"
+    )
+    root = str(Path(__file__).resolve().parents[1])
+    out = {}
+    for label in ("warm", "cold"):
+        env = dict(os.environ)
+        with tempfile.TemporaryDirectory() as tmp:
+            if label == "cold":
+                env["NUMBA_CACHE_DIR"] = tmp
+            res = subprocess.run(
+                [sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True
+            )
+        ok = res.returncode == 0
+        out[f"{label}_s"] = float(res.stdout.strip().splitlines()[-1]) if ok else None
+    return out
 
 
 def _pairs(rng: np.random.Generator, n_pairs: int, n_points: int):
@@ -157,6 +210,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--pairs", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="skip the exact-library Spearman")
+    parser.add_argument(
+        "--cold-start", action="store_true", help="also time numba compilation from an empty cache"
+    )
     args = parser.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     rng = np.random.default_rng(2024)
@@ -172,6 +228,7 @@ def main() -> None:
     scans = [_scan_bench(n, args.workers, args.repeats, rng) for n in (100, 150)]
     pairs = _pair_bench(rng, args.pairs)
     spear = None if args.quick else _spearman(rng, 100, args.workers)
+    start = _start_up() if args.cold_start else None
 
     print("knotlab registration benchmark")
     for key, val in machine.items():
@@ -204,8 +261,15 @@ def main() -> None:
             f"{spear['exact_library_s']:.1f} s; exact's best demo is scan rank "
             f"{spear['exact_best_rank_in_scan']}"
         )
+    if start:
+        print(
+            f"\nStart-up (fresh interpreter: import + first SCAN registration): numba cache warm "
+            f"{start['warm_s']:.2f} s, cold (compiling) {start['cold_s']:.1f} s"
+        )
+    machine["load_avg_1min_end"] = os.getloadavg()[0]
     if args.json:
-        print(json.dumps({"machine": machine, "scan": scans, "pairs": pairs, "spearman": spear}))
+        out = {"machine": machine, "scan": scans, "pairs": pairs, "spearman": spear}
+        print(json.dumps({**out, "start_up": start}))
 
 
 if __name__ == "__main__":

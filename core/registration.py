@@ -10,12 +10,13 @@ a single pair is a batch of one. For each demo a it fits f_a: X_a -> Y and g_a: 
      Sinkhorn sweeps, rows first, giving row- and column-normalised matches M^r, M^c;
   3. targets x^_i = sum_j M^r_ij y_j (and y^_j = sum_i M^c_ij x_i) and a TPS fit for f and g.
 
-Target rules (`RegistrationParams.target_rule`), both through the same code:
-  * "batch"    the paper-era GPU rule: targets NOT divided by the inlier mass w_i; a point whose
-               inlier mass is below `outlier_cutoff` keeps its current warped position as target;
-               the fit is unweighted, so with the spectral basis of `core.tps.TpsBasis` each fit is
-               e = (G^T x^ + h) / (1 + lambda mu): matrix products only, precomputed per cloud.
-               Used by `SCAN` (features, nearest-neighbour cost). Outlier corner frac*sqrt(nm).
+Target rules (`RegistrationParams.target_rule`), all through the same kernel:
+  * "batch"    targets x^_i = sum_j M^r_ij y_j / w_i (divided by the inlier mass w_i); a point
+               whose inlier mass is below `outlier_cutoff` keeps its current warped position as
+               target; the fit is unweighted, so with the spectral basis of `core.tps.TpsBasis`
+               each fit is e = (G^T x^ + h) / (1 + lambda mu): products only, precomputed per
+               cloud. Used by `SCAN` (features, nearest-neighbour cost). Corner frac*sqrt(nm).
+  * "gpu"      as "batch" but targets NOT divided by w_i (the literal GPU `getTargPts` rule).
   * "weighted" the paper-era CPU rule: x^_i = sum_j M^r_ij y_j / w_i and a fit weighted by w_i
                (one k x k solve per demo per iteration). Used by `EXACT` (transfer).
                Outlier corner prior*sqrt(nm).
@@ -27,6 +28,9 @@ the kernel -r is 1-homogeneous, scaling a pair by s is the same as dividing lamb
 pair-dependent scale would make the per-demo precomputation scene-dependent. Costs are in these
 normalised ("unit-box") coordinates; f and g are returned in world coordinates.
 
+The annealing loop itself is one numba kernel (`_rpm_kernel`, see the comment above it); the
+single-pair `register` runs it as a batch of one, so a scan and a pair use the same code.
+
 Shape suffixes: a demos, b demos in a chunk, n demo points (padded), m scene points, k TPS
 basis coefficients, 3 xyz.
 """
@@ -34,6 +38,7 @@ basis coefficients, 3 xyz.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import time
 import warnings
@@ -45,6 +50,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from numba import njit
 
 from core.errors import InvalidInputError, SolverError
 from core.tps import ThinPlateSpline, TpsBasis, tps_basis
@@ -333,24 +339,349 @@ class _PhaseClock:
             self.last = now
 
 
-def _left_aug(a_bn3: np.ndarray, padded_bn: np.ndarray, scale2) -> np.ndarray:
-    """Rows [s2 a, s2 |a|^2, s2]: with `_right_aug` rows, left . right = s2 |a - b|^2."""
-    out = np.empty((*a_bn3.shape[:-1], 5), a_bn3.dtype)
-    out[..., :3] = a_bn3 * scale2
-    out[..., 3] = np.einsum("...d,...d->...", a_bn3, a_bn3) * scale2
-    out[..., 4] = scale2
-    # A padded point is 'far from everything': distance sqrt(1e6) -> affinity exactly 0.
-    out[padded_bn] = (0.0, 0.0, 0.0, 1e6, 0.0)
-    return out
+# ----------------------------------------------------------------------------- numba kernels
+#
+# One fused kernel, `_rpm_kernel`, runs the whole annealing loop for a chunk of demos, one demo
+# at a time (its correspondence matrix, 90 kB at 150 x 150 float32, stays in L1/L2 for all
+# iterations). It is compiled without fastmath (strict IEEE; results do not depend on
+# reassociation) and without numba's own threading (`parallel=False`): the one level of
+# parallelism is `LibraryRegistrar`'s worker threads over chunks, which the kernel allows by
+# releasing the GIL (`nogil=True`); numba's threading layer is never started. Two idioms keep
+# the inner loops SIMD-vectorisable under strict IEEE:
+#   * p is kept in both layouts (p and p^T, one copy per iteration) so every Sinkhorn and
+#     target product is an axpy along contiguous memory; a dot-product reduction is not
+#     vectorised without reassociation;
+#   * exp(-s) is `_exp_neg_row`: Cody-Waite range reduction s = k ln2 - r, a degree-10 Taylor
+#     polynomial (relative truncation error < 3e-13) and 2^-k assembled from its IEEE bits;
+#     LLVM's exp is a scalar libm call when SVML is absent. Measured error vs np.exp: < 1e-7
+#     relative in float32 (about 1 ulp), < 1e-12 in float64 (tests/test_registration.py).
+# Compilation: `cache=True` writes the machine code next to this file (core/__pycache__/*.nbi,
+# *.nbc); numba falls back to NUMBA_CACHE_DIR or ~/.cache when that is not writable. A cold
+# compile of both dtypes takes tens of seconds; a warm start loads in about a second.
+# Every array a kernel reads is in the RPM dtype (float32 for SCAN, float64 for EXACT), and so
+# are the constants (`_consts`), so float32 arithmetic never silently widens to float64.
+
+_EXP_TAYLOR = tuple(1.0 / math.factorial(q) for q in range(11))
 
 
-def _right_aug(b_m3: np.ndarray) -> np.ndarray:
-    """Columns [-2 b; 1; |b|^2] (5, m), or (batch, 5, m) for a batch of clouds."""
-    out = np.empty((*b_m3.shape[:-2], 5, b_m3.shape[-2]), b_m3.dtype)
-    out[..., :3, :] = -2.0 * np.swapaxes(b_m3, -1, -2)
-    out[..., 3, :] = 1.0
-    out[..., 4, :] = np.einsum("...d,...d->...", b_m3, b_m3)
-    return out
+def _consts(dt: np.dtype, params: RegistrationParams) -> np.ndarray:
+    """The kernel's scalars in the RPM dtype; see `_K_*` for the slots."""
+    ln2 = math.log(2.0)
+    ln2_hi = 0.693359375  # 355/512: k * ln2_hi is exact in float32 for the k < 128 used
+    c = [1.0 / ln2, 0.5, ln2_hi, ln2 - ln2_hi, _MAX_EXPONENT, *_EXP_TAYLOR]
+    c += [params.outlier_prior, params.outlier_frac, params.outlier_cutoff, 1.0, 0.0, 1e-30]
+    return np.array(c, dtype=dt)
+
+
+_K_PRIOR, _K_FRAC, _K_CUTOFF, _K_ONE, _K_ZERO, _K_TINY = range(16, 22)
+_RULES = {"batch": 0, "gpu": 1, "weighted": 2}
+# stop_after: run the phases up to this one in every iteration (the benchmark's phase split)
+_PHASES = ("affinity", "sinkhorn", "targets", "tps fit")
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no cover - compiled
+    """p[i, j] = exp(-min(s[j], cap)) for j < m, s >= 0; 2^-k built in `bits` (a view: bits_f)."""
+    log2e, half, ln2_hi, ln2_lo, cap = cst[0], cst[1], cst[2], cst[3], cst[4]
+    c0, c1, c2, c3, c4, c5 = cst[5], cst[6], cst[7], cst[8], cst[9], cst[10]
+    c6, c7, c8, c9, c10 = cst[11], cst[12], cst[13], cst[14], cst[15]
+    for j in range(m):
+        v = min(s[j], cap)
+        kf = np.floor(v * log2e + half)
+        r = kf * ln2_lo - (v - kf * ln2_hi)  # -v = -k ln2 + r, |r| <= ln2 / 2
+        poly = c10
+        poly = poly * r + c9
+        poly = poly * r + c8
+        poly = poly * r + c7
+        poly = poly * r + c6
+        poly = poly * r + c5
+        poly = poly * r + c4
+        poly = poly * r + c3
+        poly = poly * r + c2
+        poly = poly * r + c1
+        poly = poly * r + c0
+        s[j] = poly
+        bits[j] = (e_bias - int(kf)) << e_shift  # the IEEE bit pattern of 2^-k
+    for j in range(m):
+        p[i, j] = s[j] * bits_f[j]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _rpm_kernel(
+    idx,
+    x_an3,
+    n_a,
+    g_ank,
+    gt_akn,
+    mu_ak,
+    h_ak3,
+    y_m3,
+    g_y,
+    gt_y,
+    mu_y,
+    h_y,
+    lam_i,
+    inv2t_i,
+    cst,
+    bits,
+    bits_f,
+    e_bias,
+    e_shift,
+    a_out,
+    b_out_b,
+    corner_b,
+    rule,
+    sinkhorn_iters,
+    stop_after,
+    e_f,
+    e_g,
+    fx_out,
+    gy_out,
+    xhat_out,
+    yhat_out,
+    wf_out,
+    wg_out,
+    mf_out,
+    mg_out,
+    corr,
+    failed,
+):  # pragma: no cover - compiled
+    """Bidirectional TPS-RPM for every demo b of a chunk against the scene (see `_rpm_batch`)."""
+    dt_one = cst[_K_ONE]
+    zero = cst[_K_ZERO]
+    prior, cutoff, tiny = cst[_K_PRIOR], cst[_K_CUTOFF], cst[_K_TINY]
+    m = y_m3.shape[0]
+    ky = gt_y.shape[0]
+    nb = idx.shape[0]
+    n_max = x_an3.shape[1]
+    ys = np.empty((4, m), cst.dtype)  # scene SoA, row 3 = 1
+    for j in range(m):
+        for d in range(3):
+            ys[d, j] = y_m3[j, d]
+        ys[3, j] = dt_one
+    # per-demo scratch, sized for the largest demo
+    xs = np.empty((3, n_max), cst.dtype)
+    fx = np.empty((3, n_max), cst.dtype)
+    gy = np.empty((3, m), cst.dtype)
+    p = np.empty((n_max, m), cst.dtype)
+    pt = np.empty((m, n_max), cst.dtype)
+    srow = np.empty(m, cst.dtype)
+    rd = np.empty(n_max, cst.dtype)
+    r = np.empty(n_max, cst.dtype)
+    c = np.empty(m, cst.dtype)
+    c_prev = np.empty(m, cst.dtype)
+    col = np.empty(m, cst.dtype)
+    cy = np.empty((4, m), cst.dtype)
+    fwd = np.empty((4, n_max), cst.dtype)
+    bwd = np.empty((4, m), cst.dtype)
+    xhat = np.empty((3, n_max), cst.dtype)
+    yhat = np.empty((3, m), cst.dtype)
+    wf = np.empty(n_max, cst.dtype)
+    wg = np.empty(m, cst.dtype)
+    ef = np.empty((3, n_max + 4), cst.dtype)
+    eg = np.empty((3, ky), cst.dtype)
+    for b in range(nb):
+        a = idx[b]
+        n = n_a[a]
+        k = n + 4
+        b_out = b_out_b[b]
+        corner = corner_b[b]
+        for i in range(n):
+            for d in range(3):
+                xs[d, i] = x_an3[a, i, d]
+                fx[d, i] = x_an3[a, i, d]
+        for j in range(m):
+            for d in range(3):
+                gy[d, j] = y_m3[j, d]
+        ef[:, :k] = zero
+        eg[:, :] = zero
+        ok = True
+        for it in range(lam_i.shape[0]):
+            inv2t = inv2t_i[it]
+            # 1. affinity p_ij = exp(-(|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T), exponent capped
+            for i in range(n):
+                f0, f1, f2 = fx[0, i], fx[1, i], fx[2, i]
+                x0, x1, x2 = xs[0, i], xs[1, i], xs[2, i]
+                for j in range(m):
+                    a0 = f0 - ys[0, j]
+                    a1 = f1 - ys[1, j]
+                    a2 = f2 - ys[2, j]
+                    b0 = x0 - gy[0, j]
+                    b1 = x1 - gy[1, j]
+                    b2 = x2 - gy[2, j]
+                    srow[j] = (
+                        np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) + np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+                    ) * inv2t
+                _exp_neg_row(srow, p, i, bits, bits_f, e_bias, e_shift, cst, m)
+            # p^T too: with both layouts every product below is an axpy along contiguous
+            # memory, which vectorises under strict IEEE (a dot-product reduction does not)
+            for i in range(n):
+                for j in range(m):
+                    pt[j, i] = p[i, j]
+            if stop_after == 0:
+                continue
+            # 2. Sinkhorn with an outlier row and column, rows first (GPU order); one pass
+            #    over p per sweep: row i's scale r_i, then its share of the column sums
+            c[:] = dt_one
+            c_out = dt_one
+            r_out = zero
+            for _ in range(sinkhorn_iters):
+                csum = zero
+                for j in range(m):
+                    csum += c[j]
+                r_out = a_out / (prior * csum + corner * c_out)
+                rd[:n] = zero
+                for j in range(m):
+                    cj = c[j]
+                    for i in range(n):
+                        rd[i] += pt[j, i] * cj
+                col[:] = zero
+                for i in range(n):
+                    ri = dt_one / (rd[i] + prior * c_out)
+                    r[i] = ri
+                    for j in range(m):
+                        col[j] += p[i, j] * ri
+                rsum = zero
+                for i in range(n):
+                    rsum += r[i]
+                for j in range(m):
+                    c_prev[j] = c[j]
+                    c[j] = dt_one / (col[j] + prior * r_out)
+                c_out = b_out / (prior * rsum + corner * r_out)
+            if stop_after == 1:
+                continue
+            # 3. targets: forward from the row-normalised match r p c_prev, backward from the
+            #    column-normalised one r p c
+            for j in range(m):
+                for d in range(4):
+                    cy[d, j] = ys[d, j] * c_prev[j]
+            fwd[:, :n] = zero
+            for j in range(m):
+                cy0, cy1, cy2, cy3 = cy[0, j], cy[1, j], cy[2, j], cy[3, j]
+                for i in range(n):
+                    pji = pt[j, i]
+                    fwd[0, i] += pji * cy0
+                    fwd[1, i] += pji * cy1
+                    fwd[2, i] += pji * cy2
+                    fwd[3, i] += pji * cy3
+            bwd[:, :] = zero
+            for i in range(n):
+                ri = r[i]
+                rx0, rx1, rx2 = ri * xs[0, i], ri * xs[1, i], ri * xs[2, i]
+                for j in range(m):
+                    pij = p[i, j]
+                    bwd[0, j] += pij * rx0
+                    bwd[1, j] += pij * rx1
+                    bwd[2, j] += pij * rx2
+                    bwd[3, j] += pij * ri
+            for i in range(n):
+                wf[i] = r[i] * fwd[3, i]
+                inlier = wf[i] >= cutoff or rule == 2
+                for d in range(3):
+                    val = r[i] * fwd[d, i] if rule == 1 else fwd[d, i] / max(fwd[3, i], tiny)
+                    xhat[d, i] = val if inlier else fx[d, i]
+            for j in range(m):
+                wg[j] = c[j] * bwd[3, j]
+                inlier = wg[j] >= cutoff or rule == 2
+                for d in range(3):
+                    val = c[j] * bwd[d, j] if rule == 1 else bwd[d, j] / max(bwd[3, j], tiny)
+                    yhat[d, j] = val if inlier else gy[d, j]
+            if stop_after == 2:
+                continue
+            # 4. TPS fits of f and g
+            lam = lam_i[it]
+            if rule == 2:
+                ok = _fit_weighted(g_ank[a, :n, :k], mu_ak[a, :k], h_ak3[a, :k], xhat, wf, lam, ef)
+                ok = ok and _fit_weighted(g_y, mu_y, h_y, yhat, wg, lam, eg)
+                if not ok:
+                    break
+            else:
+                _fit_unweighted(g_ank[a], mu_ak[a], h_ak3[a], xhat, lam, dt_one, ef, n, k)
+                _fit_unweighted(g_y, mu_y, h_y, yhat, lam, dt_one, eg, m, ky)
+            _apply(gt_akn[a], ef, fx, n, k)
+            _apply(gt_y, eg, gy, m, ky)
+        failed[b] = not ok
+        for i in range(n):
+            wf_out[b, i] = wf[i]
+            for d in range(3):
+                fx_out[b, i, d] = fx[d, i]
+                xhat_out[b, i, d] = xhat[d, i]
+                mf_out[b, i, d] = fwd[d, i] / max(fwd[3, i], tiny)
+        for j in range(m):
+            wg_out[b, j] = wg[j]
+            for d in range(3):
+                gy_out[b, j, d] = gy[d, j]
+                yhat_out[b, j, d] = yhat[d, j]
+                mg_out[b, j, d] = bwd[d, j] / max(bwd[3, j], tiny)
+        for q in range(k):
+            for d in range(3):
+                e_f[b, q, d] = ef[d, q]
+        for q in range(ky):
+            for d in range(3):
+                e_g[b, q, d] = eg[d, q]
+        if corr.shape[0] > 0:
+            for i in range(n):
+                for j in range(m):
+                    corr[b, i, j] = r[i] * p[i, j] * c_prev[j]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragma: no cover
+    """e = (G^T x^ + h) / (1 + lambda mu), e stored (3, k); vectorised over k."""
+    for d in range(3):
+        for q in range(k):
+            e_3k[d, q] = h_k3[q, d]
+    for d in range(3):  # one output row at a time: a plain axpy the vectoriser accepts
+        e_d = e_3k[d]
+        for i in range(n):
+            t = target_3n[d, i]
+            for q in range(k):
+                e_d[q] += g_nk[i, q] * t
+    for q in range(k):
+        s = one / (one + lam * mu_k[q])
+        for d in range(3):
+            e_3k[d, q] *= s
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _apply(gt_kn, e_3k, out_3n, n, k):  # pragma: no cover - compiled
+    """out = G e, out stored (3, n); vectorised over n."""
+    out_3n[:, :n] = 0
+    for d in range(3):
+        out_d = out_3n[d]
+        for q in range(k):
+            e = e_3k[d, q]
+            for i in range(n):
+                out_d[i] += gt_kn[q, i] * e
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _fit_weighted(g_nk, mu_k, h_k3, target_3n, w_n, lam, e_3k):  # pragma: no cover
+    """Solve (I + lambda diag mu - G^T diag(1-w) G) e = G^T diag(w) x^ + h; False if singular."""
+    n, k = g_nk.shape
+    g = np.ascontiguousarray(g_nk)
+    gw = np.empty((n, k), g.dtype)
+    rhs_n = np.empty((n, 3), g.dtype)
+    for i in range(n):
+        for q in range(k):
+            gw[i, q] = g[i, q] * (1 - w_n[i])
+        for d in range(3):
+            rhs_n[i, d] = w_n[i] * target_3n[d, i]
+    gt = np.ascontiguousarray(g.T)
+    lhs = -(gt @ gw)
+    for q in range(k):
+        lhs[q, q] += 1 + lam * mu_k[q]
+    rhs = gt @ rhs_n + h_k3
+    try:
+        e = np.linalg.solve(lhs, rhs)
+    except Exception:  # numba raises LinAlgError for a singular system
+        return False
+    for q in range(k):
+        for d in range(3):
+            if not np.isfinite(e[q, d]):
+                return False
+            e_3k[d, q] = e[q, d]
+    return True
 
 
 def _rpm_batch(
@@ -360,6 +691,7 @@ def _rpm_batch(
     params: RegistrationParams,
     keep_corr: bool,
     timings: dict[str, float] | None = None,
+    stop_after: int = len(_PHASES) - 1,
 ) -> _ChunkOut:
     """Run bidirectional TPS-RPM for demos idx against the scene (one cloud) in one batch."""
     clock = _PhaseClock(timings)
@@ -369,139 +701,102 @@ def _rpm_batch(
     n = max(int(n_valid.max()), 1)
     k = n + 4
     cast = demo.cast(dt)
-    x = cast["x_an3"][idx, :n]
-    rowmask = demo.mask_an[idx, :n].astype(dt)
-    g_x = cast["g_ank"][idx, :n, :k]
-    gt_x = cast["gt_akn"][idx, :k, :n]
-    mu_x = cast["mu_ak"][idx, :k]
-    h_x = cast["h_ak3"][idx, :k]
     m = int(scene.n_a[0])
     ky = m + 4
-    y = scene.x_an3[0, :m].astype(dt)
-    g_y = scene.g_ank[0, :m, :ky].astype(dt)
-    gt_y = np.ascontiguousarray(g_y.T)
-    mu_y = scene.mu_ak[0, :ky].astype(dt)
-    h_y = scene.h_ak3[0, :ky].astype(dt)
+    scene_cast = scene.cast(dt)
+    y = np.ascontiguousarray(scene_cast["x_an3"][0, :m])
+    g_y = np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky])
+    gt_y = np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m])
+    mu_y = np.ascontiguousarray(scene_cast["mu_ak"][0, :ky])
+    h_y = np.ascontiguousarray(scene_cast["h_ak3"][0, :ky])
     nb = len(idx)
-    prior, frac, cutoff = params.outlier_prior, params.outlier_frac, params.outlier_cutoff
-    a_out = m * frac
+    frac = params.outlier_frac
+    corner_coef = frac if not weighted else params.outlier_prior
+    a_out = np.array(m * frac, dt)
     b_out = (n_valid * frac).astype(dt)
-    corner = ((frac if not weighted else prior) * np.sqrt(n_valid * m)).astype(dt)
-
+    corner = (corner_coef * np.sqrt(n_valid * m)).astype(dt)
     lams, temps = params.schedule()
-    fx = x.copy()  # identity start in median-centred coordinates
-    gy = np.broadcast_to(y, (nb, m, 3)).copy()
+    cst = _consts(dt, params)
+    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)
+    e_bias, e_shift = (127, 23) if dt == np.float32 else (1023, 52)
+
     e_f = np.zeros((nb, k, 3), dt)
     e_g = np.zeros((nb, ky, 3), dt)
-    padded = ~demo.mask_an[idx, :n]
-    left_x = _left_aug(x, padded, dt.type(1.0))
-    d_f = np.empty((nb, n, m), dt)
-    d_g = np.empty((nb, n, m), dt)
-    failed: dict[int, str] = {}
+    fx, xhat, mf = (np.zeros((nb, n, 3), dt) for _ in range(3))
+    gy, yhat, mg = (np.zeros((nb, m, 3), dt) for _ in range(3))
+    w_f = np.zeros((nb, n), dt)
+    w_g = np.zeros((nb, m), dt)
+    corr = np.zeros((nb, n, m) if keep_corr else (0, 0, 0), dt)
+    bad = np.zeros(nb, np.bool_)
     clock.tick("setup")
-    for lam, temp in zip(lams, temps, strict=True):
-        # 1. affinities exp(-(|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T); padded rows: exp(-1e3) = 0.
-        #    Squared distances come from one K=5 product of augmented points, pre-scaled by
-        #    1/(2T)^2, so the only full-size passes are abs, sqrt, add, negate and exp.
-        inv2t_sq = dt.type((0.5 / temp) ** 2)
-        np.matmul(
-            _left_aug(fx, padded, inv2t_sq).reshape(nb * n, 5),
-            _right_aug(y),
-            out=d_f.reshape(nb * n, m),
-        )
-        np.matmul(left_x * inv2t_sq, _right_aug(gy), out=d_g)
-        # abs, not max(., 0): rounding makes tiny negatives, and abs is the cheaper pass.
-        np.sqrt(np.abs(d_f, out=d_f), out=d_f)
-        np.sqrt(np.abs(d_g, out=d_g), out=d_g)
-        d_f += d_g
-        # Cap the exponent at 80: exp(-80) is still a normal float32, whereas smaller values
-        # become subnormals that slow every later product over p by an order of magnitude.
-        np.minimum(d_f, _MAX_EXPONENT, out=d_f)
-        p = np.exp(np.negative(d_f, out=d_f), out=d_f)
-        p_t = np.swapaxes(p, 1, 2)
-        clock.tick("affinity")
-        # 2. Sinkhorn with an outlier row and column, rows first (GPU order)
-        c = np.ones((nb, m), dt)
-        c_out = np.ones(nb, dt)
-        for _ in range(params.sinkhorn_iters):
-            r = rowmask / ((p @ c[:, :, None])[:, :, 0] + prior * c_out[:, None])
-            r_out = a_out / (prior * c.sum(axis=1) + corner * c_out)
-            col = (p_t @ r[:, :, None])[:, :, 0] + prior * r_out[:, None]
-            c_prev = c
-            c = 1.0 / col
-            c_out = b_out / (prior * r.sum(axis=1) + corner * r_out)
-        clock.tick("sinkhorn")
-        # 3. targets: forward from the row-normalised, backward from the column-normalised match
-        fwd = p @ np.concatenate([c_prev[:, :, None] * y, c_prev[:, :, None]], axis=2)
-        w_f = r * fwd[:, :, 3]
-        bwd = p_t @ np.concatenate([r[:, :, None] * x, r[:, :, None]], axis=2)
-        w_g = c * bwd[:, :, 3]
-        clock.tick("targets")
-        if weighted:
-            xhat = fwd[:, :, :3] / np.maximum(fwd[:, :, 3:], 1e-30)
-            yhat = bwd[:, :, :3] / np.maximum(bwd[:, :, 3:], 1e-30)
-            e_f, bad_f = _solve_weighted(g_x, mu_x, h_x, xhat, w_f, lam)
-            e_g, bad_g = _solve_weighted(
-                np.broadcast_to(g_y, (nb, m, ky)),
-                np.broadcast_to(mu_y, (nb, ky)),
-                np.broadcast_to(h_y, (nb, ky, 3)),
-                yhat,
-                w_g,
-                lam,
-            )
-            failed.update(bad_f)
-            failed.update(bad_g)
-        else:
-            if params.target_rule == "gpu":
-                xhat_in = r[:, :, None] * fwd[:, :, :3]
-                yhat_in = c[:, :, None] * bwd[:, :, :3]
-            else:
-                xhat_in = fwd[:, :, :3] / np.maximum(fwd[:, :, 3:], 1e-30)
-                yhat_in = bwd[:, :, :3] / np.maximum(bwd[:, :, 3:], 1e-30)
-            xhat = np.where((w_f >= cutoff)[:, :, None], xhat_in, fx)
-            yhat = np.where((w_g >= cutoff)[:, :, None], yhat_in, gy)
-            e_f = gt_x @ xhat
-            e_f += h_x
-            e_f /= (1 + dt.type(lam) * mu_x)[:, :, None]
-            # The scene basis is shared: one GEMM over all demos' targets at once.
-            e_g = (gt_y @ yhat.transpose(1, 0, 2).reshape(m, nb * 3)).reshape(ky, nb, 3)
-            e_g = e_g.transpose(1, 0, 2) + h_y
-            e_g /= (1 + dt.type(lam) * mu_y)[None, :, None]
-        fx = g_x @ e_f
-        gy = (g_y @ e_g.transpose(1, 0, 2).reshape(ky, nb * 3)).reshape(m, nb, 3)
-        gy = gy.transpose(1, 0, 2)
-        clock.tick("tps fit")
+    _rpm_kernel(
+        np.ascontiguousarray(idx, dtype=np.int64),
+        cast["x_an3"],
+        demo.n_a,
+        cast["g_ank"],
+        cast["gt_akn"],
+        cast["mu_ak"],
+        cast["h_ak3"],
+        y,
+        g_y,
+        gt_y,
+        mu_y,
+        h_y,
+        lams.astype(dt),
+        (0.5 / temps).astype(dt),
+        cst,
+        bits,
+        bits.view(dt),
+        e_bias,
+        e_shift,
+        a_out,
+        b_out,
+        corner,
+        _RULES[params.target_rule],
+        params.sinkhorn_iters,
+        stop_after,
+        e_f,
+        e_g,
+        fx,
+        gy,
+        xhat,
+        yhat,
+        w_f,
+        w_g,
+        mf,
+        mg,
+        corr,
+        bad,
+    )
+    clock.tick("rpm kernel")
+    failed = {int(b): "weighted TPS system singular (no inlier mass?)" for b in np.flatnonzero(bad)}
 
     # costs, in normalised coordinates, float64
     fx64, gy64 = fx.astype(float), gy.astype(float)
-    wf = w_f.astype(float) if weighted else rowmask.astype(float)
-    wg = w_g.astype(float) if weighted else np.ones((nb, m))
-    map_fwd = np.einsum("bn,bn->b", wf, ((fx64 - xhat) ** 2).sum(axis=2))
-    map_bwd = np.einsum("bm,bm->b", wg, ((gy64 - yhat) ** 2).sum(axis=2))
+    xhat64, yhat64 = xhat.astype(float), yhat.astype(float)
+    w_f64, w_g64 = w_f.astype(float), w_g.astype(float)
+    wf = w_f64 if weighted else demo.mask_an[idx, :n].astype(float)
+    wg = w_g64 if weighted else np.ones((nb, m))
+    map_fwd = np.einsum("bn,bn->b", wf, ((fx64 - xhat64) ** 2).sum(axis=2))
+    map_bwd = np.einsum("bm,bm->b", wg, ((gy64 - yhat64) ** 2).sum(axis=2))
     e_f64, e_g64 = e_f.astype(float), e_g.astype(float)
     bend_f = np.einsum("bk,bkd->b", demo.mu_ak[idx, :k], e_f64**2)
     bend_g = np.einsum("k,bkd->b", scene.mu_ak[0, :ky], e_g64**2)
-    w_f64, w_g64 = w_f.astype(float), w_g.astype(float)
     inl_f = w_f64.sum(axis=1) / np.maximum(n_valid, 1)
     inl_g = w_g64.mean(axis=1)
     b_f = np.einsum("bpk,bkd->bpd", demo.theta_apk[idx, 1:4, :k], e_f64)
     b_g = np.einsum("pk,bkd->bpd", scene.theta_apk[0, 1:4, :ky], e_g64)
     aff_f = np.linalg.norm(b_f - np.eye(3), axis=(1, 2))
     aff_g = np.linalg.norm(b_g - np.eye(3), axis=(1, 2))
-    matched_f = fwd[:, :, :3].astype(float) / np.maximum(fwd[:, :, 3:].astype(float), 1e-30)
-    matched_g = bwd[:, :, :3].astype(float) / np.maximum(bwd[:, :, 3:].astype(float), 1e-30)
-    res_f = np.linalg.norm(fx64 - matched_f, axis=2)
-    res_g = np.linalg.norm(gy64 - matched_g, axis=2)
+    res_f = np.linalg.norm(fx64 - mf, axis=2)
+    res_g = np.linalg.norm(gy64 - mg, axis=2)
     res_f = (w_f64 * res_f).sum(1) / np.maximum(w_f64.sum(1), 1e-30) * params.scale_m
     res_g = (w_g64 * res_g).sum(1) / np.maximum(w_g64.sum(1), 1e-30) * params.scale_m
     costs = np.stack(
         [map_fwd, map_bwd, bend_f, bend_g, inl_f, inl_g, aff_f, aff_g, res_f, res_g], axis=1
     )
-    corr = None
-    if keep_corr:
-        corr = (r[:, :, None] * p * c_prev[:, None, :]).astype(float)
     clock.tick("costs")
-    return _ChunkOut(e_f64, e_g64, costs, corr, failed)
+    return _ChunkOut(e_f64, e_g64, costs, corr.astype(float) if keep_corr else None, failed)
 
 
 # ----------------------------------------------------------------------------- results

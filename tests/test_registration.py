@@ -146,3 +146,88 @@ def test_disk_and_memory_cache_give_identical_scans(tmp_path) -> None:
     np.testing.assert_array_equal(res1.costs_ac, res2.costs_ac)
     assert res2.costs_ac.shape == (3, len(COST_NAMES))
     np.testing.assert_allclose(res2.f(1)(demos[1]), res1.f(1)(demos[1]))
+
+
+# ----------------------------------------------------------------------------- numba kernel
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_kernel_exp_matches_numpy(dtype: str) -> None:
+    from core.registration import _consts, _exp_neg_row
+
+    dt = np.dtype(dtype)
+    s = np.concatenate([np.linspace(0, 100, 997), np.random.default_rng(0).uniform(0, 90, 500)])
+    s = s.astype(dt)
+    p = np.empty((1, len(s)), dt)
+    bits = np.empty(len(s), np.int32 if dt == np.float32 else np.int64)
+    bias_shift = (127, 23) if dt == np.float32 else (1023, 52)
+    _exp_neg_row(s.copy(), p, 0, bits, bits.view(dt), *bias_shift, _consts(dt, SCAN), len(s))
+    want = np.exp(-np.minimum(s.astype(float), 80.0))
+    rel = np.abs(p[0] / want - 1)
+    assert rel.max() < (2.5e-7 if dt == np.float32 else 1e-12), rel.max()
+
+
+def _numpy_reference(demo, scene, params):
+    """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
+    from core.tps import tps_basis
+
+    x, y = demo, scene
+    bx, by = tps_basis(x, params.rot_coef), tps_basis(y, params.rot_coef)
+    n, m = len(x), len(y)
+    prior, frac, cutoff = params.outlier_prior, params.outlier_frac, params.outlier_cutoff
+    weighted = params.target_rule == "weighted"
+    corner = (prior if weighted else frac) * np.sqrt(n * m)
+    fx, gy = x.copy(), y.copy()
+    for lam, temp in zip(*params.schedule(), strict=True):
+        d = np.linalg.norm(fx[:, None] - y[None], axis=2) + np.linalg.norm(
+            x[:, None] - gy[None], axis=2
+        )
+        p = np.exp(-np.minimum(d / (2 * temp), 80.0))
+        c, c_out = np.ones(m), 1.0
+        for _ in range(params.sinkhorn_iters):
+            r = 1.0 / (p @ c + prior * c_out)
+            r_out = m * frac / (prior * c.sum() + corner * c_out)
+            c_prev, c = c, 1.0 / (p.T @ r + prior * r_out)
+            c_out = n * frac / (prior * r.sum() + corner * r_out)
+        mr = r[:, None] * p * c_prev[None]
+        mc = r[:, None] * p * c[None]
+        w_f, w_g = mr.sum(1), mc.sum(0)
+        xhat = (mr @ y) / w_f[:, None]
+        yhat = (mc.T @ x) / w_g[:, None]
+        if weighted:
+            e_f, e_g = bx.solve(xhat, lam, w_f), by.solve(yhat, lam, w_g)
+        else:
+            xhat = np.where((w_f >= cutoff)[:, None], xhat, fx)
+            yhat = np.where((w_g >= cutoff)[:, None], yhat, gy)
+            e_f, e_g = bx.solve(xhat, lam), by.solve(yhat, lam)
+        fx, gy = bx.g_nk @ e_f, by.g_nk @ e_g
+    map_cost = np.sum((w_f if weighted else 1.0) * ((fx - xhat) ** 2).sum(1))
+    return e_f, e_g, map_cost
+
+
+@pytest.mark.parametrize("rule", ["batch", "weighted"])
+def test_kernel_matches_numpy_reference_on_random_clouds(rule: str) -> None:
+    from core.registration import _demo_side, _rpm_batch, _scene_side
+
+    rng = np.random.default_rng(11)
+    params = replace(SCAN, target_rule=rule, dtype="float64", n_iter=6, scale_m=1.0)
+    for n, m in [(23, 31), (40, 17)]:
+        demo = rng.normal(scale=0.3, size=(n, 3))
+        scene = demo[: min(n, m)] + rng.normal(scale=0.05, size=(min(n, m), 3))
+        scene = np.vstack([scene, rng.normal(scale=0.3, size=(m - len(scene), 3))])
+        # clouds already median-centred so the reference needs no normalisation
+        demo -= np.median(demo, axis=0)
+        scene -= np.median(scene, axis=0)
+        e_f, e_g, map_cost = _numpy_reference(demo, scene, params)
+        out = _rpm_batch(
+            _demo_side([demo], params), np.array([0]), _scene_side(scene, params), params, False
+        )
+        np.testing.assert_allclose(out.e_f[0, : len(e_f)], e_f, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(out.e_g[0, : len(e_g)], e_g, rtol=1e-7, atol=1e-9)
+        assert out.costs_bc[0, 0] == pytest.approx(map_cost, rel=1e-7, abs=1e-12)
+        # float32 (the SCAN dtype) stays close to the float64 result
+        p32 = replace(params, dtype="float32")
+        out32 = _rpm_batch(
+            _demo_side([demo], p32), np.array([0]), _scene_side(scene, p32), p32, False
+        )
+        np.testing.assert_allclose(out32.e_f[0, : len(e_f)], e_f, rtol=2e-3, atol=2e-3)
