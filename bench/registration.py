@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from core.machine import cpu_model  # noqa: E402
 from core.registration import (  # noqa: E402
     _PHASES,
     EXACT,
@@ -37,16 +38,6 @@ from core.registration import (  # noqa: E402
 from core.synthetic import corrupt, library, rope_cloud, smooth_warp  # noqa: E402
 
 N_DEMOS = 148
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _blas_info() -> str:
@@ -217,7 +208,7 @@ def main() -> None:
     warnings.simplefilter("ignore", RuntimeWarning)
     rng = np.random.default_rng(2024)
     machine = {
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "numpy": np.__version__,

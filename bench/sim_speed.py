@@ -29,19 +29,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.knot import is_overhand_knot  # noqa: E402
 from core.knot_sequence import overhand_sequence  # noqa: E402
+from core.machine import cpu_model  # noqa: E402
 from core.rope import straight_rope  # noqa: E402
 from core.sim import RopeWorld  # noqa: E402
 from core.trajectory import GripperTrajectory, down_rotation  # noqa: E402
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _drag_trajectory() -> GripperTrajectory:
@@ -107,7 +98,7 @@ def measure(repeats: int) -> dict:
             knots += int(knotted)
     med = statistics.median
     return {
-        "cpu_model": _cpu_model(),
+        "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
         "pybullet": metadata.version("pybullet"),

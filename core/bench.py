@@ -22,7 +22,6 @@ import json
 import logging
 import math
 import os
-import platform
 import time
 import traceback
 from collections import Counter
@@ -37,6 +36,7 @@ import numpy as np
 from core.demos import DemoLibrary
 from core.errors import InvalidInputError, KnotlabError
 from core.learn import QModel
+from core.machine import machine_info
 from core.tasks import TaskSet
 
 log = logging.getLogger(__name__)
@@ -489,22 +489,6 @@ def package_versions() -> dict[str, str | None]:
         except metadata.PackageNotFoundError:
             out[name] = None
     return out
-
-
-def machine_info() -> dict:
-    """Where the numbers were measured."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count()
-    return {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor() or None,
-        "cpu_count": os.cpu_count(),
-        "usable_cores": cores,
-    }
 
 
 # ---------------------------------------------------------------------------- orchestration

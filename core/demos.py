@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.arrays import points_n3
 from core.errors import CorruptFileError, InvalidInputError
 from core.npzfile import read_npz, write_npz
 from core.trajectory import GripperTrajectory
@@ -30,15 +31,6 @@ LIBRARY_VERSION = 1
 def segment_key(start_index: int, step_index: int) -> str:
     """Stable library key of a segment: start state and step, e.g. 's012-t1'."""
     return f"s{start_index:03d}-t{step_index}"
-
-
-def _points(name: str, arr: np.ndarray) -> np.ndarray:
-    a = np.asarray(arr, dtype=float)
-    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
-        raise InvalidInputError(f"{name} must have shape (n, 3) with n >= 1, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise InvalidInputError(f"{name} contains NaN or infinite values")
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,8 +51,8 @@ class DemoSegment:
             raise InvalidInputError(f"segment {self.key}: trajectory must be a GripperTrajectory")
         if self.step_index < 0 or self.start_index < 0:
             raise InvalidInputError(f"segment {self.key}: negative step or start index")
-        pre = _points(f"segment {self.key} pre_nodes_k3", self.pre_nodes_k3)
-        post = _points(f"segment {self.key} post_nodes_k3", self.post_nodes_k3)
+        pre = points_n3(f"segment {self.key} pre_nodes_k3", self.pre_nodes_k3)
+        post = points_n3(f"segment {self.key} post_nodes_k3", self.post_nodes_k3)
         if pre.shape != post.shape:
             raise InvalidInputError(
                 f"segment {self.key}: pre and post node shapes differ ({pre.shape} vs {post.shape})"
@@ -68,7 +60,7 @@ class DemoSegment:
         object.__setattr__(self, "pre_nodes_k3", pre)
         object.__setattr__(self, "post_nodes_k3", post)
         object.__setattr__(
-            self, "pre_cloud_n3", _points(f"segment {self.key} pre_cloud_n3", self.pre_cloud_n3)
+            self, "pre_cloud_n3", points_n3(f"segment {self.key} pre_cloud_n3", self.pre_cloud_n3)
         )
         json.dumps(self.metadata)  # metadata must be JSON-able: fail now, not at save time
 

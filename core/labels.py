@@ -14,24 +14,12 @@ from typing import Literal
 
 import numpy as np
 
+from core.arrays import optional_points_n3, points_n3
 from core.errors import InvalidInputError
 
 Outcome = Literal["progressed", "knot", "dead_end", "misgrasp", "skipped"]
 OUTCOMES: tuple[str, ...] = ("progressed", "knot", "dead_end", "misgrasp", "skipped")
 LabelSource = Literal["oracle", "human"]
-
-
-def _cloud(name: str, arr: np.ndarray | None, allow_none: bool = False) -> np.ndarray | None:
-    if arr is None:
-        if allow_none:
-            return None
-        raise InvalidInputError(f"{name} is required")
-    a = np.asarray(arr, dtype=float)
-    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
-        raise InvalidInputError(f"{name} must have shape (n, 3) with n >= 1, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise InvalidInputError(f"{name} contains NaN or infinite values")
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,9 +42,9 @@ class LabelledStep:
             raise InvalidInputError(f"outcome must be one of {OUTCOMES}, got {self.outcome!r}")
         if not isinstance(self.chosen_demo, str) or not self.chosen_demo:
             raise InvalidInputError("chosen_demo must be a non-empty demo key")
-        object.__setattr__(self, "cloud_n3", _cloud("cloud_n3", self.cloud_n3))
+        object.__setattr__(self, "cloud_n3", points_n3("cloud_n3", self.cloud_n3))
         object.__setattr__(
-            self, "rope_nodes_k3", _cloud("rope_nodes_k3", self.rope_nodes_k3, allow_none=True)
+            self, "rope_nodes_k3", optional_points_n3("rope_nodes_k3", self.rope_nodes_k3)
         )
         object.__setattr__(self, "candidates", tuple(self.candidates))
         if self.candidate_scores_c is not None:
@@ -77,9 +65,9 @@ class DeadEndState:
     rope_nodes_k3: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "cloud_n3", _cloud("cloud_n3", self.cloud_n3))
+        object.__setattr__(self, "cloud_n3", points_n3("cloud_n3", self.cloud_n3))
         object.__setattr__(
-            self, "rope_nodes_k3", _cloud("rope_nodes_k3", self.rope_nodes_k3, allow_none=True)
+            self, "rope_nodes_k3", optional_points_n3("rope_nodes_k3", self.rope_nodes_k3)
         )
 
 

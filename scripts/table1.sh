@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Reproduce Table I end to end, resumably: oracle labels -> model -> benchmark.
+# Every stage skips work already done (labels in the DB, outcomes in results/), so rerunning
+# after an interruption continues where it stopped. Usage: scripts/table1.sh [LEVEL] [N_TRAIN]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+level=${1:-main}
+n_train=${2:-300}
+bin=.venv/bin
+db="sqlite:///results/labels_${level}.db"
+mkdir -p results
+export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+
+# 1. Oracle labels for the training starts (resumable: labelled tasks are skipped).
+$bin/knotlab label --oracle --tasks train --level "$level" --limit "$n_train" --db "$db"
+$bin/knotlab labels export --format jsonl --url "$db" --out "results/labels_oracle_${level}.jsonl"
+
+# 2. Train on the training labels only (validation split by execution).
+$bin/knotlab train --labels "results/labels_oracle_${level}.jsonl" \
+  --out "results/model_${level}.npz" --json | tee "results/train_${level}.log"
+
+# 3. Table I on the test set: NN and greedy on 500 tasks, the search policies on the first 125.
+$bin/knotlab bench --policies nn,greedy,la1x10,la2x5,oracle --tasks 500 --first 125 \
+  --level "$level" --model "results/model_${level}.npz" --out "results/table1_${level}"
