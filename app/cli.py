@@ -11,7 +11,11 @@ COMMAND_MODULES: tuple[str, ...] = (
     "app.cmd_tie",
     "app.cmd_db",
     "app.cmd_labels",
+    "app.cmd_demos",
+    "app.cmd_tasks",
     "app.cmd_label",
+    "app.cmd_train",
+    "app.cmd_bench",
 )
 
 

@@ -22,6 +22,7 @@ TASKSET_FORMAT = "knotlab-task-set"
 TASKSET_VERSION = 1
 SPLITS: tuple[str, ...] = ("train", "test")
 MAX_SETTLE_RETRIES = 20
+MIN_CLEARANCE = 0.022  # m between non-neighbouring nodes of a new start (rope diameter 0.02)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,18 +183,43 @@ def _retry_seed(seed: int, attempt: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(attempt)]).generate_state(1)[0])
 
 
+def min_clearance(nodes_k3: np.ndarray, min_gap: int = 2) -> float:
+    """Smallest xy distance between rope nodes at least ``min_gap`` apart along the rope."""
+    xy = np.asarray(nodes_k3, dtype=float)[:, :2]
+    d_kk = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    idx = np.arange(len(xy))
+    far = np.abs(idx[:, None] - idx[None]) >= min_gap
+    return float(d_kk[far].min()) if far.any() else float("inf")
+
+
 def _make_task(job: _TaskJob) -> RopeTask:
-    """Perturb, settle and check one start state; fresh perturbations of the original on retry."""
-    from core.rope import has_xy_self_intersection, perturb_rope
+    """Perturb, settle and check one start state; fresh perturbations of the original on retry.
+
+    A draw is rejected if its xy path self-intersects (before or after settling) or two
+    non-neighbouring nodes come closer than ``MIN_CLEARANCE`` (they would start in contact).
+    Every retry perturbs the ORIGINAL demo start with a new seed: retries never accumulate.
+    """
+    from core.rope import has_xy_self_intersection, perturb_rope, rope_length
 
     world = _world()
     for attempt in range(MAX_SETTLE_RETRIES):
         sub_seed = job.seed if attempt == 0 else _retry_seed(job.seed, attempt)
-        nodes = perturb_rope(job.source_nodes_k3, job.rho, n_centres=job.n_centres, seed=sub_seed)
+        try:
+            nodes = perturb_rope(
+                job.source_nodes_k3, job.rho, n_centres=job.n_centres, seed=sub_seed
+            )
+        except InvalidInputError:
+            continue  # every draw of this sub-seed crossed itself: try the next sub-seed
+        if min_clearance(nodes) < MIN_CLEARANCE:
+            continue
         world.reset(nodes)
         world.settle(job.settle_seconds)
         settled = world.rope_nodes()
-        if np.all(np.isfinite(settled)) and not has_xy_self_intersection(settled):
+        if (
+            np.all(np.isfinite(settled))
+            and abs(rope_length(settled) - rope_length(nodes)) < 0.02 * rope_length(nodes)
+            and not has_xy_self_intersection(settled)
+        ):
             return RopeTask(job.task_id, settled, job.source_start, job.seed)
     raise InvalidInputError(
         f"task {job.task_id}: no valid settled start after {MAX_SETTLE_RETRIES} perturbations"
