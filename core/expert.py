@@ -49,10 +49,10 @@ import numpy as np
 
 from core.errors import InvalidInputError
 from core.knot import analyse_knot
+from core.knot_sequence import pick_place, single_gripper_trajectory
 from core.rope import resample_by_arc_length, segment_crossings_xy
-from core.trajectory import GripperTrajectory, down_rotation
+from core.trajectory import GripperTrajectory
 
-PARK_LEFT = np.array([-0.7, 0.4, 0.3])  # where the idle left gripper waits, far from the rope
 N_STEPS = 3
 MIN_PICK_HEIGHT = 0.015  # step 2 picks the loop at least this far from the tail line
 # Gauss code of the open rope expected after each step (mirroring keeps the O/U sequence).
@@ -202,33 +202,6 @@ def _perp(v_2: np.ndarray) -> np.ndarray:
     return np.array([-v_2[1], v_2[0]])
 
 
-def _single_gripper_trajectory(
-    points_t3: np.ndarray, closed_t: np.ndarray, speeds_t: np.ndarray
-) -> GripperTrajectory:
-    """Right gripper through ``points`` (leg ending at t at speeds_t[t]); left parked, open."""
-    points_t3 = np.asarray(points_t3, dtype=float)
-    legs = np.linalg.norm(np.diff(points_t3, axis=0), axis=1)
-    times_t = np.concatenate([[0.0], np.cumsum(legs / np.asarray(speeds_t, dtype=float)[1:])])
-    n_t = points_t3.shape[0]
-    pos_gt3 = np.stack([np.broadcast_to(PARK_LEFT, (n_t, 3)), points_t3])
-    closed_gt = np.stack([np.zeros(n_t, dtype=bool), np.asarray(closed_t, dtype=bool)])
-    rot_gt33 = np.broadcast_to(down_rotation(), (2, n_t, 3, 3))
-    return GripperTrajectory(times_t, pos_gt3, rot_gt33, closed_gt)
-
-
-def _pick_place(
-    pick_3: np.ndarray, lift: float, place_2: np.ndarray, place_z: float, speed: float
-) -> GripperTrajectory:
-    """Pick at ``pick_3``, rise by ``lift``, move level to above ``place_2``, lower, release."""
-    up = pick_3 + np.array([0.0, 0.0, lift])
-    over = np.array([place_2[0], place_2[1], up[2]])
-    down = np.array([place_2[0], place_2[1], place_z])
-    points = np.stack([pick_3, up, over, down, down])
-    closed = np.array([True, True, True, True, False])
-    speeds = np.array([0.0, speed / 2, speed, speed / 2, speed])
-    return _single_gripper_trajectory(points, closed, speeds)
-
-
 def _end_grasp_point(nodes_k3: np.ndarray, offset: float) -> np.ndarray:
     """Point ``offset`` metres from end B's tip along the rope, at link-centre height."""
     total = _arc(nodes_k3)[-1]
@@ -275,7 +248,7 @@ def plan_loop(nodes_k3: np.ndarray, style: ExpertStyle) -> GripperTrajectory:
     closed = np.ones(points.shape[0], dtype=bool)
     closed[-1] = False
     speeds = np.full(points.shape[0], style.lay_speed)
-    return _single_gripper_trajectory(points, closed, speeds)
+    return single_gripper_trajectory(points, closed, speeds)
 
 
 def loop_frame(nodes_k3: np.ndarray) -> LoopFrame | None:
@@ -326,14 +299,14 @@ def plan_over_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -
     # The drag target is fixed relative to the tail end: the loop's later arm must come back
     # up beyond the tail tip, or both arms of the dragged side cross the tail.
     place = frame.tail_end_2 + target * frame.along_2 - style.drag_dy * frame.normal_2
-    return _pick_place(pick, style.lift2, place, 0.02, style.speed)
+    return pick_place(pick, style.lift2, place, 0.02, style.speed)
 
 
 def plan_pull_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -> GripperTrajectory:
     """Step 3: pick the tail near its tip and pull it out along the tail, away from the loop."""
     pick = _end_grasp_point(nodes_k3, style.end_grasp)
     place = pick[:2] + style.pull_dx * frame.along_2 - style.pull_dy * frame.normal_2
-    return _pick_place(pick, style.lift3, place, 0.02, style.speed)
+    return pick_place(pick, style.lift3, place, 0.02, style.speed)
 
 
 # ---------------------------------------------------------------------- running a demo

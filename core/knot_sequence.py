@@ -23,7 +23,7 @@ from core.trajectory import GripperTrajectory, down_rotation
 PARK_LEFT = np.array([-0.7, 0.4, 0.3])  # where the idle left gripper waits, far from the rope
 
 
-def _single_gripper_trajectory(
+def single_gripper_trajectory(
     points_t3: np.ndarray, closed_t: np.ndarray, speeds_t: np.ndarray
 ) -> GripperTrajectory:
     """Trajectory for the right gripper through `points`; leg t (ending at t) at speeds_t[t]."""
@@ -37,7 +37,7 @@ def _single_gripper_trajectory(
     return GripperTrajectory(times_t, pos_gt3, rot_gt33, closed_gt)
 
 
-def _pick_place(
+def pick_place(
     pick_3: np.ndarray, lift: float, place_xy: np.ndarray, place_z: float, speed: float
 ) -> GripperTrajectory:
     """Pick at `pick_3`, rise by `lift`, move level to above `place_xy`, lower, release."""
@@ -49,7 +49,7 @@ def _pick_place(
     closed = np.array([True, True, True, True, False])
     # Lowering at half speed lets the rope touch down without bouncing.
     speeds = np.array([0.0, speed / 2, speed, speed / 2, speed])
-    return _single_gripper_trajectory(points, closed, speeds)
+    return single_gripper_trajectory(points, closed, speeds)
 
 
 def overhand_sequence(
@@ -79,11 +79,11 @@ def overhand_sequence(
     closed1 = np.ones(n1, dtype=bool)
     closed1[-1] = False
     speeds1 = np.full(n1, 0.3)
-    step1 = _single_gripper_trajectory(points1, closed1, speeds1)
+    step1 = single_gripper_trajectory(points1, closed1, speeds1)
     # Steps 2 and 3 pick where step 1 (resp. 2) leaves the rope in simulation: fixed numbers,
     # valid for the straight start only. Measured neighbours (pick link 20 or 21, place 7-11 cm
     # below the tail, lift 3-4 cm, pull 15-20 cm) all tie the knot, so this sits in a robust spot.
-    step2 = _pick_place(  # link 21, on the loop's first side, just above the tail end
+    step2 = pick_place(  # link 21, on the loop's first side, just above the tail end
         pick_3=np.array([0.002, 0.038, z0]),
         lift=0.04,
         place_xy=np.array([0.002, -0.136]),  # 9 cm below the tail end at y = -0.046
@@ -91,7 +91,7 @@ def overhand_sequence(
         speed=0.2,
     )
     tail_end = np.array([-0.053, -0.072, z0])  # link 39 after step 2
-    step3 = _pick_place(
+    step3 = pick_place(
         pick_3=tail_end,
         lift=0.05,
         place_xy=tail_end[:2] + np.array([0.20, -0.05]),
