@@ -30,6 +30,19 @@ from core.learn import LabelledState, QModel, TrainingData
 log = logging.getLogger(__name__)
 
 
+def _float_list(text: str) -> list[float]:
+    """'0.1,1,10' -> [0.1, 1.0, 10.0] (argparse type)."""
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers separated by commas, got {text!r}"
+        ) from None
+    if not values or any(not math.isfinite(v) or v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite non-negative numbers, got {text!r}")
+    return values
+
+
 def _fail(message: str) -> int:
     print(f"knotlab train: error: {message}", file=sys.stderr)
     return 2
@@ -204,19 +217,49 @@ def _run(args: argparse.Namespace) -> int:
     if not train_parts:
         return _fail("no usable training executions after featurising (see warnings)")
     train_data = merge_training_data(train_parts)
-    learner = MaxMarginQLearner(
-        C=args.C,
-        D=args.D,
-        margin_scale=args.margin_scale,
-        featurizer=LibraryFeaturizer(library),
-    )
-    t1 = time.perf_counter()
-    try:
-        model = learner.fit(train_data)
-    except KnotlabError as exc:
-        return _fail(f"training failed: {exc}")
-    fit_s = time.perf_counter() - t1
-    validation = ranking_metrics(model, merge_training_data(val_parts)) if val_parts else None
+    val_data = merge_training_data(val_parts) if val_parts else None
+    featurizer = LibraryFeaturizer(library)
+    # A grid of (C, D) is fitted on the training split and ranked on the validation split only
+    # (top-1 agreement with the expert, then the expert's mean rank): the test set never
+    # chooses hyper-parameters.
+    sweep = []
+    for C in args.C:
+        for D in args.D:
+            learner = MaxMarginQLearner(
+                C=C, D=D, margin_scale=args.margin_scale, featurizer=featurizer
+            )
+            t1 = time.perf_counter()
+            try:
+                fitted = learner.fit(train_data)
+            except KnotlabError as exc:
+                print(f"warning: C={C:g}, D={D:g}: training failed: {exc}", file=sys.stderr)
+                continue
+            val = ranking_metrics(fitted, val_data) if val_data is not None else None
+            sweep.append((C, D, fitted, val, learner, time.perf_counter() - t1))
+    if not sweep:
+        return _fail("training failed for every (C, D)")
+
+    def score(entry):
+        _, _, fitted, val, _, _ = entry
+        if val is None:
+            return (fitted.metrics["train_top1"], -fitted.metrics["train_mean_expert_rank"])
+        return (val["top1"], -val["mean_expert_rank"])
+
+    best = max(sweep, key=score)
+    C_best, D_best, model, validation, learner, fit_s = best
+    if len(sweep) > 1:
+        print("  C        D        val top-1  val top-3  val mean rank  train top-1")
+        for C, D, fitted, val, _, _ in sweep:
+            v = val or {
+                "top1": float("nan"),
+                "top3": float("nan"),
+                "mean_expert_rank": float("nan"),
+            }
+            mark = "  <- chosen" if (C_best, D_best) == (C, D) else ""
+            print(
+                f"  {C:<8g} {D:<8g} {v['top1']:9.3f}  {v['top3']:9.3f}  "
+                f"{v['mean_expert_rank']:13.2f}  {fitted.metrics['train_top1']:11.3f}{mark}"
+            )
     final = model
     if args.refit_all and val_parts:
         final = learner.fit(merge_training_data(train_parts + val_parts))
@@ -231,6 +274,12 @@ def _run(args: argparse.Namespace) -> int:
         "split_seed": args.seed,
         "refit_all": bool(args.refit_all and val_parts),
         "validation": validation,
+        "C": C_best,
+        "D": D_best,
+        "sweep": [
+            {"C": C, "D": D, "validation": val, "train_top1": f.metrics["train_top1"]}
+            for C, D, f, val, _, _ in sweep
+        ],
         "featurize_s": round(featurize_s, 3),
         "fit_s": round(fit_s, 3),
     }
@@ -295,8 +344,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
     )
-    p.add_argument("--C", dest="C", type=float, default=1.0, help="margin slack weight (1.0)")
-    p.add_argument("--D", dest="D", type=float, default=1.0, help="Bellman slack weight (1.0)")
+    p.add_argument(
+        "--C",
+        dest="C",
+        type=_float_list,
+        default=[1.0],
+        help="margin slack weight; a comma list (0.1,1,10) is swept on the validation split",
+    )
+    p.add_argument(
+        "--D",
+        dest="D",
+        type=_float_list,
+        default=[1.0],
+        help="Bellman slack weight; a comma list is swept like --C",
+    )
     p.add_argument(
         "--margin-scale",
         type=float,

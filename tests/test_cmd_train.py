@@ -53,3 +53,28 @@ def test_train_with_a_missing_labels_file_fails_clearly(tmp_path, capsys):
     assert cli.main([*args, "--out", str(tmp_path / "m.npz")]) == 2
     assert "labels" in capsys.readouterr().err
     assert not (tmp_path / "m.npz").exists()
+
+
+def test_train_sweeps_c_and_d_on_the_validation_split(tmp_path, capsys):
+    lib = mini_library(2).save(tmp_path / "lib.npz")
+    labels = write_mini_labels(tmp_path / "labels.jsonl")
+    out = tmp_path / "model.npz"
+    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
+    args += ["--C", "0.01,10", "--D", "1,5", "--validation-fraction", "0.5"]
+    assert cli.main([*args, "--workers", "1", "--no-progress", "--json"]) == 0
+    text = capsys.readouterr().out
+    summary = json.loads(text.strip().splitlines()[-1])
+    assert "<- chosen" in text
+    assert [(e["C"], e["D"]) for e in summary["sweep"]] == [(0.01, 1), (0.01, 5), (10, 1), (10, 5)]
+    best = max(
+        summary["sweep"],
+        key=lambda e: (e["validation"]["top1"], -e["validation"]["mean_expert_rank"]),
+    )
+    assert (summary["C"], summary["D"]) == (best["C"], best["D"])
+    assert QModel.load(out).hyperparameters["C"] == summary["C"]
+
+
+def test_train_rejects_a_malformed_grid(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["train", "--C", "1,abc"])
+    assert "comma" in capsys.readouterr().err
