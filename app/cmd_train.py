@@ -218,6 +218,8 @@ def _run(args: argparse.Namespace) -> int:
         return _fail("no usable training executions after featurising (see warnings)")
     train_data = merge_training_data(train_parts)
     val_data = merge_training_data(val_parts) if val_parts else None
+    if val_data is not None and not val_data.states:
+        val_data = None  # held-out executions with dead ends only: nothing to rank
     featurizer = LibraryFeaturizer(library)
     # A grid of (C, D) is fitted on the training split and ranked on the validation split only
     # (top-1 agreement with the expert, then the expert's mean rank): the test set never

@@ -79,9 +79,10 @@ class TrainingData:
     dead_ends_phi: tuple[np.ndarray, ...] = ()  # (A, d) features of every action in a dead end
 
     def __post_init__(self) -> None:
-        if not self.states:
-            raise InvalidInputError("TrainingData needs at least one labelled state")
-        d = self.states[0].phi_ad.shape[1]
+        if not self.states and not self.dead_ends_phi:
+            raise InvalidInputError("TrainingData needs at least one labelled state or dead end")
+        # An execution the expert could not finish still contributes its dead ends.
+        d = (self.states[0].phi_ad if self.states else np.asarray(self.dead_ends_phi[0])).shape[1]
         for i, s in enumerate(self.states):
             if s.phi_ad.shape[1] != d:
                 raise InvalidInputError(f"state {i} has {s.phi_ad.shape[1]} features, expected {d}")
@@ -103,7 +104,7 @@ class TrainingData:
     @property
     def n_features(self) -> int:
         """Feature dimension d."""
-        return int(self.states[0].phi_ad.shape[1])
+        return int((self.states[0].phi_ad if self.states else self.dead_ends_phi[0]).shape[1])
 
 
 class StateFeaturizer(Protocol):
@@ -314,6 +315,10 @@ class MaxMarginQLearner:
                 )
             data = build_training_data(list(data), self.featurizer)
         self._check_hyperparameters()
+        if not data.states:
+            raise InvalidInputError(
+                "fit needs at least one labelled expert state, not only dead ends"
+            )
         spec = self.featurizer.spec() if self.featurizer is not None else {}
         indicator = np.asarray(spec.get("indicator_mask", []), dtype=bool)
         mean_d, scale_d = _standardisation(data, indicator, self.standardize)

@@ -17,7 +17,7 @@ $bin/knotlab labels export --format jsonl --url "$db" --out "results/labels_orac
 
 # 2. Train on the training labels only (validation split by execution).
 $bin/knotlab train --labels "results/labels_oracle_${level}.jsonl" \
-  --out "results/model_${level}.npz" --json | tee "results/train_${level}.log"
+  --C 0.1,1,10 --D 1,10 --out "results/model_${level}.npz" --json | tee "results/train_${level}.log"
 
 # 3. Table I on the test set: NN and greedy on 500 tasks, the search policies on the first 125.
 $bin/knotlab bench --policies nn,greedy,la1x10,la2x5,oracle --tasks 500 --first 125 \

@@ -125,3 +125,12 @@ def test_qmodel_q_rejects_wrong_feature_dimension():
     model = MaxMarginQLearner().fit(_toy_separable(10))
     with pytest.raises(InvalidInputError, match="shape"):
         model.q(np.ones((3, 7)))
+
+
+def test_dead_end_only_data_merges_but_cannot_be_fitted_alone():
+    dead = TrainingData((), dead_ends_phi=(np.ones((3, 4)),))
+    assert dead.n_features == 4
+    with pytest.raises(InvalidInputError, match="at least one labelled expert state"):
+        MaxMarginQLearner().fit(dead)
+    with pytest.raises(InvalidInputError, match="state or dead end"):
+        TrainingData(())
