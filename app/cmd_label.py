@@ -8,13 +8,10 @@ import sys
 import time
 from pathlib import Path
 
+from app import defaults
 from core.demos import DemoLibrary
 from core.labeller import OracleParams, oracle_label_tasks
 from core.tasks import TaskSet
-
-STATIC = Path(__file__).resolve().parent.parent / "static"
-DEFAULT_LIBRARY = STATIC / "demos_default.npz"
-DEFAULT_DB = "sqlite:///knotlab.db"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,13 +26,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--oracle", action="store_true", required=True, help="use the oracle expert")
     p.add_argument("--tasks", choices=("train",), default="train", help="which task split")
-    p.add_argument("--level", default="main", help="task level (main or hard)")
+    p.add_argument("--level", choices=defaults.LEVELS, default="main", help="task level")
     p.add_argument(
         "--task-file", type=Path, help="task set file (default: the level's shipped set)"
     )
-    p.add_argument("--library", type=Path, default=DEFAULT_LIBRARY, help="demo library file")
+    p.add_argument("--library", type=Path, default=defaults.LIBRARY_PATH, help="demo library file")
     p.add_argument(
-        "--db", default=DEFAULT_DB, help=f"labelling database URL (default {DEFAULT_DB})"
+        "--db", default=defaults.DB_URL, help=f"labelling database URL (default {defaults.DB_URL})"
     )
     p.add_argument("--limit", type=int, help="label only the first N tasks")
     p.add_argument("--candidates", type=int, default=10, help="demos tried per state")
@@ -49,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
     from labeling_db.store import open_store
 
-    task_path = args.task_file or STATIC / f"tasks_{args.level}_{args.tasks}.npz"
+    task_path = args.task_file or defaults.task_set_path(args.level, args.tasks)
     tasks = TaskSet.load(task_path)
     library = DemoLibrary.load(args.library)
     selected = list(tasks)[: args.limit] if args.limit else list(tasks)

@@ -9,9 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app import defaults
 from core.tasks import TaskSet
-
-DEFAULT_LIBRARY = Path(__file__).resolve().parents[1] / "static" / "demos_default.npz"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -31,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen.add_argument("--seed", type=int, required=True, help="generation seed")
     gen.add_argument("--centres", type=int, default=7, help="tent centres along the rope (7)")
     gen.add_argument("--level", default="main", help="level name used in file names (main)")
-    gen.add_argument("--library", default=str(DEFAULT_LIBRARY), help="demo library file")
+    gen.add_argument("--library", default=str(defaults.LIBRARY_PATH), help="demo library file")
     gen.add_argument("--out-dir", default=".", help="directory for the task files (.)")
     gen.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")
