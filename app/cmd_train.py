@@ -43,6 +43,18 @@ def _float_list(text: str) -> list[float]:
     return values
 
 
+def _count_pair(text: str) -> tuple[int, int]:
+    """'50,20' -> (50, 20) (argparse type)."""
+    parts = text.split(",")
+    try:
+        pair = tuple(int(v) for v in parts)
+    except ValueError:
+        pair = ()
+    if len(pair) != 2 or min(pair) < 0:
+        raise argparse.ArgumentTypeError(f"expected two counts >= 0 like 50,20, got {text!r}")
+    return pair
+
+
 def _fail(message: str) -> int:
     print(f"knotlab train: error: {message}", file=sys.stderr)
     return 2
@@ -77,11 +89,11 @@ def split_executions(
 _FEATURIZER = None  # this process's LibraryFeaturizer, built once by the initializer
 
 
-def _init_featurizer(library) -> None:
+def _init_featurizer(library, landmarks=None) -> None:
     global _FEATURIZER
     from core.features import LibraryFeaturizer
 
-    _FEATURIZER = LibraryFeaturizer(library)
+    _FEATURIZER = LibraryFeaturizer(library, landmarks=landmarks)
 
 
 def _featurize(execution: LabelledExecution) -> TrainingData | str:
@@ -112,10 +124,15 @@ def merge_training_data(parts: Sequence[TrainingData]) -> TrainingData:
 
 
 def featurize_executions(
-    executions: Sequence[LabelledExecution], library, *, workers: int | None, progress: bool
+    executions: Sequence[LabelledExecution],
+    library,
+    *,
+    workers: int | None,
+    progress: bool,
+    landmarks=None,
 ) -> tuple[list[TrainingData | None], list[str]]:
     """Per-execution training data (None where unusable) and the warnings about those."""
-    results = _map_featurize(executions, library, workers, progress)
+    results = _map_featurize(executions, library, workers, progress, landmarks)
     parts: list[TrainingData | None] = []
     warnings: list[str] = []
     for ex, r in zip(executions, results, strict=True):
@@ -127,7 +144,7 @@ def featurize_executions(
     return parts, warnings
 
 
-def _map_featurize(executions, library, workers, progress):
+def _map_featurize(executions, library, workers, progress, landmarks):
     from functools import partial
 
     from core.parallel import map_processes
@@ -136,7 +153,7 @@ def _map_featurize(executions, library, workers, progress):
         _featurize,
         list(executions),
         workers=workers,
-        initializer=partial(_init_featurizer, library),
+        initializer=partial(_init_featurizer, library, landmarks),
         desc="featurising labelled states",
         progress=progress,
     )
@@ -155,7 +172,28 @@ def ranking_metrics(model: QModel, data: TrainingData) -> dict:
         "top3": float(np.mean(r < 3)),
         "mean_expert_rank": float(r.mean()),
         "median_expert_rank": float(np.median(r)),
+        **value_metrics(model, data),
     }
+
+
+def value_metrics(model: QModel, data: TrainingData) -> dict:
+    """How well V(s) = max_a Q(s, a) tells expert states from dead ends (what lookahead uses).
+
+    ``value_auc`` is P(V(expert state) > V(dead end)) over all pairs (0.5 = no better than chance).
+    """
+    v_states = np.array([np.max(model.q(s.phi_ad)) for s in data.states])
+    v_dead = np.array([np.max(model.q(phi)) for phi in data.dead_ends_phi])
+    out = {
+        "n_dead_ends": len(v_dead),
+        "mean_value_states": float(v_states.mean()) if len(v_states) else float("nan"),
+        "mean_value_dead_ends": float(v_dead.mean()) if len(v_dead) else float("nan"),
+        "value_auc": float("nan"),
+    }
+    if len(v_states) and len(v_dead):
+        greater = (v_states[:, None] > v_dead[None, :]).mean()
+        ties = (v_states[:, None] == v_dead[None, :]).mean()
+        out["value_auc"] = float(greater + 0.5 * ties)
+    return out
 
 
 def _json_safe(value):
@@ -173,6 +211,7 @@ def _json_safe(value):
 def _run(args: argparse.Namespace) -> int:
     from core.demos import DemoLibrary
     from core.features import LibraryFeaturizer
+    from core.landmarks import sample_landmarks
     from core.learn import MaxMarginQLearner
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -205,9 +244,21 @@ def _run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return _fail(str(exc))
 
+    # Landmarks come from the training split only, so validation states stay unseen.
+    n_landmark_labelled, n_landmark_dead = args.landmarks
+    landmarks = sample_landmarks(
+        [executions[i] for i in train_idx],
+        n_labelled=n_landmark_labelled,
+        n_dead_ends=n_landmark_dead,
+        seed=args.seed,
+    )
     t0 = time.perf_counter()
     parts, warnings = featurize_executions(
-        executions, library, workers=args.workers, progress=not args.no_progress
+        executions,
+        library,
+        workers=args.workers,
+        progress=not args.no_progress,
+        landmarks=landmarks,
     )
     featurize_s = time.perf_counter() - t0
     for w in warnings:
@@ -220,7 +271,7 @@ def _run(args: argparse.Namespace) -> int:
     val_data = merge_training_data(val_parts) if val_parts else None
     if val_data is not None and not val_data.states:
         val_data = None  # held-out executions with dead ends only: nothing to rank
-    featurizer = LibraryFeaturizer(library)
+    featurizer = LibraryFeaturizer(library, landmarks=landmarks)
     # A grid of (C, D) is fitted on the training split and ranked on the validation split only
     # (top-1 agreement with the expert, then the expert's mean rank): the test set never
     # chooses hyper-parameters.
@@ -250,17 +301,19 @@ def _run(args: argparse.Namespace) -> int:
     best = max(sweep, key=score)
     C_best, D_best, model, validation, learner, fit_s = best
     if len(sweep) > 1:
-        print("  C        D        val top-1  val top-3  val mean rank  train top-1")
+        print("  C        D        val top-1  val top-3  val mean rank  val V-AUC  train top-1")
         for C, D, fitted, val, _, _ in sweep:
             v = val or {
                 "top1": float("nan"),
                 "top3": float("nan"),
                 "mean_expert_rank": float("nan"),
+                "value_auc": float("nan"),
             }
             mark = "  <- chosen" if (C_best, D_best) == (C, D) else ""
             print(
                 f"  {C:<8g} {D:<8g} {v['top1']:9.3f}  {v['top3']:9.3f}  "
-                f"{v['mean_expert_rank']:13.2f}  {fitted.metrics['train_top1']:11.3f}{mark}"
+                f"{v['mean_expert_rank']:13.2f}  {v['value_auc']:9.3f}  "
+                f"{fitted.metrics['train_top1']:11.3f}{mark}"
             )
     final = model
     if args.refit_all and val_parts:
@@ -276,6 +329,12 @@ def _run(args: argparse.Namespace) -> int:
         "split_seed": args.seed,
         "refit_all": bool(args.refit_all and val_parts),
         "validation": validation,
+        "landmarks": {
+            "labelled": n_landmark_labelled,
+            "dead_end": n_landmark_dead,
+            "n": len(landmarks),
+            "hash": landmarks.content_hash(),
+        },
         "C": C_best,
         "D": D_best,
         "sweep": [
@@ -308,7 +367,8 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"  validation: top-1 {validation['top1']:.3f}, top-3 {validation['top3']:.3f}, "
             f"mean expert rank {validation['mean_expert_rank']:.2f} "
-            f"({validation['n_states']} states)"
+            f"({validation['n_states']} states); V(expert state) > V(dead end) "
+            f"{validation['value_auc']:.3f} of pairs ({validation['n_dead_ends']} dead ends)"
         )
     else:
         print("  validation: none (no held-out executions)")
@@ -365,6 +425,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         default=1.0,
         help="value units the median margin is worth (1.0 = one step)",
+    )
+    p.add_argument(
+        "--landmarks",
+        type=_count_pair,
+        default=(50, 20),
+        help="landmark states sampled from the training split: LABELLED,DEAD_ENDS "
+        "(default 50,20 as in the original; 0,0 for none)",
     )
     p.add_argument("--out", default=None, help=f"model file (default {defaults.MODEL_PATH})")
     p.add_argument("--validation-fraction", type=float, default=0.2)

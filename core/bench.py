@@ -228,7 +228,11 @@ class BenchWorker:
         single_thread_blas()
         self.spec = spec
         self.world = RopeWorld()
-        self.featurizer = LibraryFeaturizer(spec.library)
+        self.featurizer = (
+            LibraryFeaturizer.for_model(spec.library, spec.model)
+            if spec.model is not None
+            else LibraryFeaturizer(spec.library)
+        )
         # Warm the demo-side factorisation now, not inside the first timed decision.
         self.featurizer.registrar.prepare(
             spec.library.clouds(), self.featurizer.library_hash, self.featurizer.params

@@ -13,6 +13,10 @@ For each demo a, from the bidirectional registration of its cloud onto the scene
   facts section 4, with the library's own clouds as landmarks): it only enters the Bellman and
   dead-end rows, where it lets the value depend on progress;
 - phase_match: phase_k at demo a's own step k(a): does this demo belong to the state's phase?;
+- landmark[l]: with landmarks (core/landmarks.py: labelled and dead-end training states, as the
+  original's 50 + 20), the same softmax over the landmarks' registration costs to the state. The
+  same for every action, so it only shapes the value: it lets V(s') tell a state the expert went
+  on from apart from a dead end, which is what lookahead compares;
 - e_a: a one-hot of the demo (a per-demo prior: some demos transfer far better than others).
 Not repeated from the original (facts section 14): positive-exponent gram features, indicators
 that are never cleared, c2-only "bend" features labelled c2 + c3.
@@ -30,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from core.demos import DemoLibrary
 from core.errors import InvalidInputError
+from core.landmarks import Landmarks
 from core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
 
 FEATURE_SET = "knotlab-features-v1"
@@ -49,6 +54,7 @@ class FeatureSpec:
     indicator_mask: tuple[bool, ...]
     phase_steps: tuple[int, ...]
     phase_temperature: float
+    landmark_hash: str | None = None
 
     def to_dict(self) -> dict:
         """JSON-able form (what QModel stores)."""
@@ -60,6 +66,7 @@ class FeatureSpec:
             "indicator_mask": list(self.indicator_mask),
             "phase_steps": list(self.phase_steps),
             "phase_temperature": self.phase_temperature,
+            "landmark_hash": self.landmark_hash,
         }
 
 
@@ -99,6 +106,7 @@ class LibraryFeaturizer:
         registrar: LibraryRegistrar | None = None,
         params: RegistrationParams = SCAN,
         phase_temperature: float = 0.25,
+        landmarks: Landmarks | None = None,
     ) -> None:
         if not phase_temperature > 0:
             raise InvalidInputError(f"phase_temperature must be > 0, got {phase_temperature}")
@@ -115,6 +123,15 @@ class LibraryFeaturizer:
         )
         self._grasp_pts = _grasp_points(library)
         self._margin_pts = _margin_points(library)
+        self.landmarks = landmarks if landmarks is not None and len(landmarks) else None
+        self._landmark_key = (
+            f"landmarks-{self.landmarks.content_hash()}" if self.landmarks is not None else None
+        )
+        landmark_names = (
+            [f"landmark[{i}:{kind}]" for i, kind in enumerate(self.landmarks.kinds)]
+            if self.landmarks is not None
+            else []
+        )
         n = len(library)
         names = (
             list(_COSTS)
@@ -122,9 +139,15 @@ class LibraryFeaturizer:
             + ["grasp_dist_m"]
             + [f"phase_{k}" for k in self._phase_steps]
             + ["phase_match"]
+            + landmark_names
             + [f"demo[{key}]" for key in library.keys]
         )
-        indicator = [False] * (len(names) - n) + [True] * n
+        # Columns left unstandardised by the learner: the one-hots, and the landmark softmax
+        # weights (in [0, 1]; most are ~0 for most states, so standardising them would blow a
+        # rarely-near landmark up to hundreds and leave the QP badly conditioned).
+        indicator = [False] * (len(names) - n - len(landmark_names)) + [True] * (
+            len(landmark_names) + n
+        )
         self._spec = FeatureSpec(
             FEATURE_SET,
             self.library_hash,
@@ -133,7 +156,25 @@ class LibraryFeaturizer:
             tuple(indicator),
             self._phase_steps,
             self.phase_temperature,
+            self.landmarks.content_hash() if self.landmarks is not None else None,
         )
+
+    @classmethod
+    def for_model(cls, library: DemoLibrary, model) -> LibraryFeaturizer:
+        """The featurizer a QModel was trained with (its landmarks), checked against its spec."""
+        featurizer = cls(
+            library,
+            phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
+            landmarks=getattr(model, "landmarks", None),
+        )
+        theirs = model.feature_spec.get("names")
+        if theirs is not None and list(theirs) != list(featurizer.feature_spec.names):
+            raise InvalidInputError(
+                "the model's features do not match this library and code "
+                f"({len(theirs)} model columns, {len(featurizer.feature_spec.names)} here): "
+                "retrain it with `knotlab train`"
+            )
+        return featurizer
 
     @property
     def n_actions(self) -> int:
@@ -192,20 +233,29 @@ class LibraryFeaturizer:
         phase_k = self.phase(scan)
         phase_ak = np.broadcast_to(phase_k, (self.n_actions, phase_k.size))
         match = self._phase_onehot_ak @ phase_k
-        return np.column_stack([c, quad, grasp, phase_ak, match, np.eye(self.n_actions)])
+        columns = [c, quad, grasp, phase_ak, match]
+        if self.landmarks is not None:
+            near_l = self.landmark_weights(cloud_n3)
+            columns.append(np.broadcast_to(near_l, (self.n_actions, near_l.size)))
+        return np.column_stack([*columns, np.eye(self.n_actions)])
+
+    def landmark_weights(self, cloud_n3: np.ndarray) -> np.ndarray:
+        """Softmax over landmarks of the relative registration cost (all zero if none register)."""
+        assert self.landmarks is not None
+        scan = self.registrar.scan(
+            cloud_n3,
+            list(self.landmarks.clouds),
+            key=self._landmark_key,
+            params=self.params,
+        )
+        cost = np.asarray(scan.nn_cost_a, dtype=float)
+        if not np.any(np.isfinite(cost)):
+            return np.zeros(len(cost))
+        return _soft_nearest(cost, self.phase_temperature)
 
     def phase(self, scan: ScanResult) -> np.ndarray:
         """Soft phase: softmax over demos of -(cost/min cost - 1)/T, summed per demo step."""
-        cost = np.asarray(scan.nn_cost_a, dtype=float)
-        finite = np.isfinite(cost)
-        rel = np.full_like(cost, np.inf)
-        c_min = max(cost[finite].min(), 1e-12)
-        rel[finite] = cost[finite] / c_min - 1.0
-        logits = -rel / self.phase_temperature
-        w = np.exp(logits - logits[finite].max())
-        w[~finite] = 0.0
-        w /= w.sum()
-        return w @ self._phase_onehot_ak
+        return _soft_nearest(scan.nn_cost_a, self.phase_temperature) @ self._phase_onehot_ak
 
     def margins(self, scan: ScanResult, expert_action: int) -> np.ndarray:
         """m(a*, a): mean closest-point distance (m) from a's warped trajectory to a*'s."""
@@ -227,6 +277,19 @@ class LibraryFeaturizer:
         m[~np.isfinite(m)] = finite_max  # a failed demo is as wrong as the most different one
         m[expert_action] = 0.0
         return m
+
+
+def _soft_nearest(cost_a: np.ndarray, temperature: float) -> np.ndarray:
+    """Softmax of -(cost / min cost - 1) / T over finite costs (scale-free; failed -> 0)."""
+    cost = np.asarray(cost_a, dtype=float)
+    finite = np.isfinite(cost)
+    rel = np.full_like(cost, np.inf)
+    c_min = max(cost[finite].min(), 1e-12)
+    rel[finite] = cost[finite] / c_min - 1.0
+    logits = -rel / temperature
+    w = np.exp(logits - logits[finite].max())
+    w[~finite] = 0.0
+    return w / w.sum()
 
 
 def _fill_failed(values_ac: np.ndarray, ok_a: np.ndarray) -> np.ndarray:

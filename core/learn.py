@@ -30,14 +30,16 @@ import json
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from scipy import sparse
 
 from core.errors import CorruptFileError, InvalidInputError, SolverError
 from core.labels import LabelledExecution
+from core.landmarks import Landmarks
 
 QMODEL_FORMAT_VERSION = 1
 
@@ -177,8 +179,13 @@ class QModel:
     feature_spec: dict
     hyperparameters: dict
     metrics: dict = field(default_factory=dict)
+    landmarks: Landmarks | None = None  # landmark states the features refer to (saved along)
 
     def __post_init__(self) -> None:
+        if self.landmarks is not None and self.feature_spec.get("landmark_hash") != (
+            self.landmarks.content_hash()
+        ):
+            raise InvalidInputError("QModel landmarks do not match its feature spec")
         w = np.asarray(self.weights_d, dtype=float)
         mean = np.asarray(self.feature_mean_d, dtype=float)
         scale = np.asarray(self.feature_scale_d, dtype=float)
@@ -219,6 +226,8 @@ class QModel:
             h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
         h.update(np.float64(self.bias).tobytes())
         h.update(json.dumps(self.feature_spec, sort_keys=True).encode())
+        if self.landmarks is not None:  # (absent for models without landmarks: hashes unchanged)
+            h.update(self.landmarks.content_hash().encode())
         return h.hexdigest()[:16]
 
     def save(self, path: str | Path) -> Path:
@@ -242,6 +251,7 @@ class QModel:
                 feature_mean_d=self.feature_mean_d,
                 feature_scale_d=self.feature_scale_d,
                 meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+                **(self.landmarks.to_arrays() if self.landmarks is not None else {}),
             )
         tmp.replace(path)  # atomic: a crash never leaves a half-written model
         return path
@@ -272,6 +282,7 @@ class QModel:
                 f"(this knotlab reads version {QMODEL_FORMAT_VERSION})"
             )
         try:
+            landmarks = Landmarks.from_arrays(arrays) if "landmark_points_n3" in arrays else None
             model = cls(
                 arrays["weights_d"],
                 meta["bias"],
@@ -280,6 +291,7 @@ class QModel:
                 meta["feature_spec"],
                 meta["hyperparameters"],
                 meta.get("metrics", {}),
+                landmarks,
             )
         except (KeyError, InvalidInputError) as exc:
             raise CorruptFileError(f"{path}: invalid model contents ({exc})") from exc
@@ -333,11 +345,12 @@ class MaxMarginQLearner:
         metrics = _training_metrics(data, w, w0, mean_d, scale_d, self.step_reward, self.gamma)
         metrics.update(info, solve_seconds=solve_s, margin_factor=kappa)
         hyper = {
-            k: v
-            for k, v in asdict(self).items()
-            if k not in ("featurizer", "verbose", "solver_options")
+            f.name: getattr(self, f.name)
+            for f in fields(self)
+            if f.name not in ("featurizer", "verbose", "solver_options")
         }
-        self.model_ = QModel(w, w0, mean_d, scale_d, spec, hyper, metrics)
+        landmarks = getattr(self.featurizer, "landmarks", None)
+        self.model_ = QModel(w, w0, mean_d, scale_d, spec, hyper, metrics, landmarks)
         return self.model_
 
     def _check_hyperparameters(self) -> None:
@@ -370,7 +383,9 @@ class MaxMarginQLearner:
             rows.append(phi[others] - phi[s.expert_action])
             rhs.append(kappa * s.margins_a[others])
             owner.append(np.full(int(others.sum()), i))
-        diff = np.concatenate(rows)
+        # Sparse: state-only columns (phase, landmarks) cancel in these differences and the
+        # one-hots leave two entries per row, so most of the matrix is exact zeros.
+        diff = sparse.csr_matrix(np.concatenate(rows))
         if diff.shape[0]:
             constraints.append(diff @ w + np.concatenate(rhs) - xi[np.concatenate(owner)] <= 0)
 
@@ -394,11 +409,19 @@ class MaxMarginQLearner:
         if data.dead_ends_phi:
             n_f = len(data.dead_ends_phi)
             yd = cp.Variable(n_f, nonneg=True, name="yd")
-            dead_rows = np.concatenate([std(p) for p in data.dead_ends_phi])
-            dead_owner = np.concatenate(
-                [np.full(p.shape[0], f) for f, p in enumerate(data.dead_ends_phi)]
-            )
-            constraints.append(dead_rows @ w + w0 - yd[dead_owner] <= self.dead_end_value)
+            dead_std = [std(p) for p in data.dead_ends_phi]
+            dead_owner = np.concatenate([np.full(p.shape[0], f) for f, p in enumerate(dead_std)])
+            # Columns equal for every action of a state (phase, landmarks) enter once per dead
+            # end instead of once per (dead end, action) row: same constraints, far fewer
+            # non-zeros (70 landmarks x 150 actions x 270 dead ends would be 2.8 M).
+            state_col = np.logical_and.reduce([np.all(p == p[0], axis=0) for p in dead_std])
+            state_idx, action_idx = np.flatnonzero(state_col), np.flatnonzero(~state_col)
+            dead_action = sparse.csr_matrix(np.concatenate([p[:, action_idx] for p in dead_std]))
+            value = dead_action @ w[action_idx] + w0 - yd[dead_owner]
+            if state_idx.size:
+                dead_state = np.stack([p[0, state_idx] for p in dead_std])
+                value = value + (dead_state @ w[state_idx])[dead_owner]
+            constraints.append(value <= self.dead_end_value)
             objective = objective + self.D * cp.sum(yd)
 
         problem = cp.Problem(cp.Minimize(objective), constraints)

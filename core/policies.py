@@ -110,7 +110,8 @@ class LookaheadPolicy(Policy):
     value from less-expanded children and so was only right for positive values): a root action
     is valued by the best child reached at the *deepest* level any branch reached; only root
     actions that reached that level compete, so values of different depths (and signs) are never
-    compared. Ties and the no-expansion case fall back to the root's Q.
+    compared. Ties and the no-expansion case fall back to the root's Q. Children of the episode's
+    last action are not valued (only a knot counts there), which saves a scan per expansion.
     """
 
     def __init__(self, model: QModel, depth: int = 1, width: int = 10) -> None:
@@ -161,7 +162,14 @@ class LookaheadPolicy(Policy):
                         return self._decide(
                             root_a, root_q, backed, root_outcomes, expansions, t0, goal=True
                         )
-                    if outcome.exploded or not np.all(np.isfinite(outcome.nodes_after_k3)):
+                    # After the episode's last action only a knot counts: a non-knot child is
+                    # a failure whatever it looks like, so its value is not worth a scan.
+                    at_horizon = level + 1 >= ctx.steps_left
+                    if (
+                        at_horizon
+                        or outcome.exploded
+                        or not np.all(np.isfinite(outcome.nodes_after_k3))
+                    ):
                         value = -np.inf
                         child_q = None
                     else:

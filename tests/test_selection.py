@@ -124,6 +124,23 @@ def test_lookahead_finds_the_knot_and_restores_the_world(world, lib, featurizer,
     assert world.snapshot().equals(before)  # the search leaves the world where it found it
 
 
+def test_lookahead_on_the_last_step_values_only_knots(world, lib, featurizer, transferer):
+    nodes = lib[lib.index_of("s000-t0")].pre_nodes_k3  # a start: no knot in one action
+    world.reset(nodes)
+    cloud = world.observe()
+    ctx = StepContext(world, cloud, featurizer.scan(cloud), featurizer, transferer, 4, 1)
+    d = ctx.phi_ad.shape[1]
+    w = np.zeros(d)
+    w[-len(lib) :] = np.arange(len(lib))  # Q prefers the last demo
+    model = QModel(w, 0.0, np.zeros(d), np.ones(d), featurizer.spec(), {})
+    decision = LookaheadPolicy(model, depth=2, width=len(lib)).choose(ctx)
+    assert not decision.info["goal_found"]
+    assert decision.info["expansions"] == len(lib)  # one level only: the episode ends here
+    # No child can be worth anything but a knot, so the root's Q decides.
+    assert all(v == -np.inf for _, v in decision.info["backed_up"].values())
+    assert decision.action == len(lib) - 1
+
+
 def test_lookahead_backup_compares_negative_values_at_the_deepest_level(featurizer):
     d = 14 + featurizer.n_actions
     model = QModel(np.zeros(d), 0.0, np.zeros(d), np.ones(d), {}, {})
