@@ -296,7 +296,11 @@ def _run(args: argparse.Namespace) -> int:
         _, _, fitted, val, _, _ = entry
         if val is None:
             return (fitted.metrics["train_top1"], -fitted.metrics["train_mean_expert_rank"])
-        return (val["top1"], -val["mean_expert_rank"])
+        ranking = (val["top1"], -val["mean_expert_rank"])
+        if args.select == "value_auc":  # for lookahead: values that tell dead ends apart
+            auc = val["value_auc"]
+            return (auc if math.isfinite(auc) else -1.0, *ranking)
+        return ranking
 
     best = max(sweep, key=score)
     C_best, D_best, model, validation, learner, fit_s = best
@@ -329,6 +333,7 @@ def _run(args: argparse.Namespace) -> int:
         "split_seed": args.seed,
         "refit_all": bool(args.refit_all and val_parts),
         "validation": validation,
+        "select": args.select,
         "landmarks": {
             "labelled": n_landmark_labelled,
             "dead_end": n_landmark_dead,
@@ -434,6 +439,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default 50,20 as in the original; 0,0 for none)",
     )
     p.add_argument("--out", default=None, help=f"model file (default {defaults.MODEL_PATH})")
+    p.add_argument(
+        "--select",
+        choices=("top1", "value_auc"),
+        default="top1",
+        help="how a swept (C, D) is chosen on the validation split: expert demo ranked first "
+        "(greedy's measure, default) or values that rank expert states above dead ends "
+        "(lookahead's measure)",
+    )
     p.add_argument("--validation-fraction", type=float, default=0.2)
     p.add_argument("--seed", type=int, default=0, help="seed of the train/validation split")
     p.add_argument(

@@ -19,7 +19,8 @@ $bin/knotlab labels export --format jsonl --url "$db" --out "results/labels_orac
 #    original's 50 + 20 landmark states was chosen on the validation split (never the test set):
 #    it ranks the expert's demo first as often as D = 1 (0.38 vs 0.40 of 47 states) but its
 #    values tell expert states from dead ends far better (0.83 vs 0.67 of pairs), which is what
-#    lookahead uses. `--C 1,10,100 --D 1,10` sweeps and prints both measures.
+#    lookahead uses. `--C 1,10,100 --D 1,10` sweeps and prints both measures (`--select
+#    value_auc` chooses by the second).
 $bin/knotlab train --labels "results/labels_oracle_${level}.jsonl" \
   --C 10 --D 10 --landmarks 50,20 --out "results/model_${level}.npz" --json \
   | tee "results/train_${level}.log"

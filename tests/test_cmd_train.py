@@ -78,3 +78,23 @@ def test_train_rejects_a_malformed_grid(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.main(["train", "--C", "1,abc"])
     assert "comma" in capsys.readouterr().err
+
+
+def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
+    lib = mini_library(2).save(tmp_path / "lib.npz")
+    labels = write_mini_labels(tmp_path / "labels.jsonl")
+    out = tmp_path / "model.npz"
+    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
+    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    args += ["--C", "1,100", "--D", "1", "--select", "value_auc"]
+    assert cli.main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["select"] == "value_auc"
+    # No dead ends in the mini labels: the AUC is undefined, so ranking decides as with top1.
+    best = max(
+        summary["sweep"],
+        key=lambda e: (e["validation"]["top1"], -e["validation"]["mean_expert_rank"]),
+    )
+    assert (summary["C"], summary["D"]) == (best["C"], best["D"])
+    with pytest.raises(SystemExit):
+        cli.main([*args[:-1], "nonsense"])
