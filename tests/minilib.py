@@ -150,3 +150,14 @@ def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
     with open(path, "w", encoding="utf-8") as fh:
         write_labels(items, fh, "jsonl")
     return path
+
+
+def mini_train_args(directory: Path) -> tuple[list[str], Path]:
+    """`knotlab train` arguments on the mini library and labels (half held out); model path."""
+    directory = Path(directory)
+    lib = mini_library(2).save(directory / "lib.npz")
+    labels = write_mini_labels(directory / "labels.jsonl")
+    out = directory / "model.npz"
+    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
+    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    return args, out

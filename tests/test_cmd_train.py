@@ -10,7 +10,7 @@ import pytest
 from app import cli
 from app.cmd_train import split_executions
 from core.learn import QModel
-from tests.minilib import mini_library, write_mini_labels
+from tests.minilib import mini_library, mini_train_args
 
 pytestmark = pytest.mark.xdist_group("bench")
 
@@ -28,11 +28,7 @@ def test_split_is_by_execution_seeded_and_keeps_both_sides():
 
 
 def test_train_from_a_labels_file_saves_a_model_and_reports_validation(tmp_path, capsys):
-    lib = mini_library(2).save(tmp_path / "lib.npz")
-    labels = write_mini_labels(tmp_path / "labels.jsonl")
-    out = tmp_path / "model.npz"
-    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
-    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    args, out = mini_train_args(tmp_path)
     assert cli.main(args) == 0
     text = capsys.readouterr().out
     summary = json.loads(text.strip().splitlines()[-1])
@@ -56,12 +52,8 @@ def test_train_with_a_missing_labels_file_fails_clearly(tmp_path, capsys):
 
 
 def test_train_sweeps_c_and_d_on_the_validation_split(tmp_path, capsys):
-    lib = mini_library(2).save(tmp_path / "lib.npz")
-    labels = write_mini_labels(tmp_path / "labels.jsonl")
-    out = tmp_path / "model.npz"
-    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
-    args += ["--C", "0.01,10", "--D", "1,5", "--validation-fraction", "0.5"]
-    assert cli.main([*args, "--workers", "1", "--no-progress", "--json"]) == 0
+    args, out = mini_train_args(tmp_path)
+    assert cli.main([*args, "--C", "0.01,10", "--D", "1,5"]) == 0
     text = capsys.readouterr().out
     summary = json.loads(text.strip().splitlines()[-1])
     assert "<- chosen" in text
@@ -81,11 +73,7 @@ def test_train_rejects_a_malformed_grid(tmp_path, capsys):
 
 
 def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
-    lib = mini_library(2).save(tmp_path / "lib.npz")
-    labels = write_mini_labels(tmp_path / "labels.jsonl")
-    out = tmp_path / "model.npz"
-    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
-    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    args, _ = mini_train_args(tmp_path)
     args += ["--C", "1,100", "--D", "1", "--select", "value_auc"]
     assert cli.main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

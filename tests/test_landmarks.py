@@ -14,7 +14,7 @@ from core.features import LibraryFeaturizer
 from core.labels import DeadEndState
 from core.landmarks import Landmarks, sample_landmarks
 from core.learn import MaxMarginQLearner, QModel
-from tests.minilib import mini_executions, mini_library, write_mini_labels
+from tests.minilib import mini_executions, mini_library, mini_train_args
 
 pytestmark = pytest.mark.xdist_group("minilib")
 
@@ -113,11 +113,7 @@ def test_a_model_keeps_its_landmarks_and_rebuilds_its_featurizer(tmp_path):
 
 
 def test_train_command_samples_landmarks_from_the_training_split(tmp_path, capsys):
-    lib = mini_library(2).save(tmp_path / "lib.npz")
-    labels = write_mini_labels(tmp_path / "labels.jsonl")
-    out = tmp_path / "model.npz"
-    args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
-    args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]
+    args, out = mini_train_args(tmp_path)
     assert cli.main([*args, "--landmarks", "2,5"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     # One training execution of 3 states and no dead ends: 2 labelled landmarks, 0 dead ends.
