@@ -6,6 +6,7 @@ import argparse
 import json
 
 from core.demos import DemoLibrary
+from core.observation import DEFAULT_OBSERVATION, ObservationModel
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +25,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen.add_argument("--out", required=True, help="library file to write (.npz)")
     gen.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     gen.add_argument("--bend", type=float, default=0.03, help="start-rope bend amplitude, m")
+    gen.add_argument(
+        "--observation",
+        choices=[m.value for m in ObservationModel],
+        default=DEFAULT_OBSERVATION.value,
+        help="how the rope is perceived: centreline (state estimate, default), cloud (camera "
+        "surface cloud), tracked (centreline estimated from the camera cloud)",
+    )
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a library file")
@@ -38,7 +46,11 @@ def run_generate(args: argparse.Namespace) -> int:
 
     report = generate_library(
         args.starts,
-        GenSettings(seed=args.seed, bend_amplitude=args.bend),
+        GenSettings(
+            seed=args.seed,
+            bend_amplitude=args.bend,
+            observation=ObservationModel.parse(args.observation),
+        ),
         workers=args.workers,
         progress=not args.no_progress,
     )
@@ -64,8 +76,10 @@ def run_info(args: argparse.Namespace) -> int:
     print(f"{args.path}: demo library v{s['version']}, hash {s['hash']}")
     print(f"  segments:      {s['segments']}")
     print(f"  start states:  {s['start_states']}")
+    meta = s["metadata"]
     per = ", ".join(f"step {k}: {v}" for k, v in s["segments_per_step"].items())
     print(f"  per step:      {per}")
+    print(f"  observation:   {ObservationModel.of_library_metadata(meta).value}")
     meta = s["metadata"]
     if "expert_success_rate" in meta:
         print(

@@ -37,6 +37,7 @@ from core.demos import DemoLibrary
 from core.errors import InvalidInputError, KnotlabError
 from core.learn import QModel
 from core.machine import machine_info
+from core.observation import ObservationModel
 from core.tasks import TaskSet
 
 log = logging.getLogger(__name__)
@@ -568,8 +569,13 @@ def run_bench(
     ray_address: str | None = None,
     progress: bool = True,
     arguments: dict | None = None,
+    training_study: bool = False,
 ) -> BenchResult:
-    """Run (or resume) ``policies`` on the first ``n_tasks`` tasks; write outcomes and results."""
+    """Run (or resume) ``policies`` on the first ``n_tasks`` tasks; write outcomes and results.
+
+    Table I runs on test sets only; ``training_study=True`` allows a training set instead, for
+    diagnostic studies that choose settings (never a reported success rate).
+    """
     t0 = time.perf_counter()
     policies = list(dict.fromkeys(policies))
     if not policies:
@@ -580,7 +586,7 @@ def run_bench(
         raise InvalidInputError(f"the number of tasks must be >= 1, got {n_tasks}")
     if n_tasks > len(task_set):
         raise InvalidInputError(f"asked for {n_tasks} tasks, the task set has {len(task_set)}")
-    if task_set.split != "test":
+    if task_set.split != "test" and not training_study:
         raise InvalidInputError(f"benchmarks run on a test set, got a {task_set.split!r} set")
     if first is not None and first < 1:
         raise InvalidInputError(f"--first must be >= 1, got {first}")
@@ -595,6 +601,13 @@ def run_bench(
         raise InvalidInputError(
             f"the model was trained on library {model.feature_spec.get('library_hash')}, "
             f"this library is {lib_hash}: retrain it with `knotlab train`"
+        )
+    observation = ObservationModel.of_library_metadata(library.metadata)
+    model_obs = (model.feature_spec.get("observation_model") if learned else None) or "cloud"
+    if learned and ObservationModel.parse(model_obs) is not observation:
+        raise InvalidInputError(
+            f"the model was trained on '{model_obs}' observations, this library's are "
+            f"'{observation.value}': use a library and model made with the same observation model"
         )
 
     out = Path(out_dir)
@@ -653,9 +666,11 @@ def run_bench(
         "arguments": dict(arguments or {}),
         "identity": asdict(identity),
         "library_hash": lib_hash,
+        "observation_model": observation.value,
         "model_hash": model.content_hash() if model is not None else None,
         "model_hyperparameters": model.hyperparameters if model is not None else None,
         "task_set_hash": identity.task_set_hash,
+        "training_study": training_study,
         "task_set": {"metadata": task_set.metadata, "n_total": len(task_set), "n_used": n_tasks},
         "policies": policies,
         "first": first,

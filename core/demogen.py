@@ -12,9 +12,11 @@ Decisions (documented here because the library's users depend on them):
   ``world.reset(pre_nodes)`` with the rope nodes read back after the previous step (the rope is at
   rest after ``execute``'s settle), so ``reset(pre_nodes) + execute(trajectory)`` reproduces
   ``post_nodes`` bit for bit; the simulator rebuilds its world from that plain state.
-- **Clouds without noise.** ``pre_cloud_n3`` is ``world.observe()`` (noise 0) after
-  ``reset(pre_nodes)``: the library is the clean reference; callers add sensor noise to the scene
-  side if they want it.
+- **Clouds without noise.** ``pre_cloud_n3`` is the settings' observation model
+  (`core.observation`: the rope centreline by default, or the camera cloud) after
+  ``reset(pre_nodes)``, noise 0: the library is the clean reference; callers add sensor noise to
+  the scene side if they want it. The model is recorded as ``metadata["observation_model"]``, and
+  every scene cloud of an episode, a lookahead or the oracle is made with the same model.
 - Start ropes: 3 cm sine bends, rotated by at most +-30 degrees and shifted by at most +-0.1 m
   (a narrow range keeps registration neighbours close); styles from `core.expert.sample_style`
   (half of them mirrored).
@@ -31,6 +33,7 @@ import numpy as np
 from core.demos import DemoLibrary, DemoSegment, segment_key
 from core.errors import InvalidInputError
 from core.expert import run_expert, sample_start_rope, sample_style
+from core.observation import DEFAULT_OBSERVATION, ObservationModel, observe
 
 GENERATOR = "knotlab.core.demogen/1"
 _WORLD: dict[str, object] = {}  # one simulator per worker process, reused across candidates
@@ -47,6 +50,7 @@ class GenSettings:
     mirror_prob: float = 0.5
     max_attempts: int = 3  # tries of steps 2 and 3 from the same pre-step state
     max_restarts: int = 4  # loops laid per demo at most
+    observation: ObservationModel = DEFAULT_OBSERVATION  # how pre-step clouds are made
 
     def to_dict(self) -> dict:
         """JSON-able copy."""
@@ -58,6 +62,7 @@ class GenSettings:
             "mirror_prob": float(self.mirror_prob),
             "max_attempts": int(self.max_attempts),
             "max_restarts": int(self.max_restarts),
+            "observation_model": self.observation.value,
         }
 
 
@@ -117,7 +122,7 @@ def run_candidate(job: tuple[GenSettings, int]) -> CandidateResult:
             {
                 "step": rec.step_index,
                 "pre": rec.pre_nodes_k3,
-                "cloud": world.observe(),
+                "cloud": observe(world, settings.observation),
                 "traj": rec.trajectory,
                 "post": rec.post_nodes_k3,
                 "code": rec.code,
@@ -215,7 +220,6 @@ def generate_library(
         "expert_success_rate": round(n_knot / len(tried), 4),
         "failed_at_step": fails,
         "cloud_noise": 0.0,
-        "observation": "RopeWorld.observe() after reset(pre_nodes)",
     }
     return GenReport(
         DemoLibrary(segments, meta), len(tried), n_knot, fails, time.perf_counter() - wall0

@@ -206,6 +206,7 @@ class DemoLibrary:
             "segments_per_step": per_step,
             "hash": self.content_hash(),
             "version": LIBRARY_VERSION,
+            "observation_model": self.metadata.get("observation_model", "cloud"),
             "metadata": self.metadata,
         }
 

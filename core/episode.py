@@ -144,7 +144,7 @@ def run_episode(
         nodes_before = world.rope_nodes()
         try:
             t0 = time.perf_counter()
-            cloud = world.observe(noise=observe_noise, seed=_step_seed(seed, step))
+            cloud = featurizer.observe(world, noise=observe_noise, seed=_step_seed(seed, step))
             scan = featurizer.scan(cloud)
             t_scan = time.perf_counter() - t0
             ctx = StepContext(world, cloud, scan, featurizer, transferer, step, max_steps - step)

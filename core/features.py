@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from core.demos import DemoLibrary
 from core.errors import InvalidInputError
 from core.landmarks import Landmarks
+from core.observation import ObservationModel, observe
 from core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
 
 FEATURE_SET = "knotlab-features-v1"
@@ -55,6 +56,7 @@ class FeatureSpec:
     phase_steps: tuple[int, ...]
     phase_temperature: float
     landmark_hash: str | None = None
+    observation_model: str = ObservationModel.CLOUD.value
 
     def to_dict(self) -> dict:
         """JSON-able form (what QModel stores)."""
@@ -67,6 +69,7 @@ class FeatureSpec:
             "phase_steps": list(self.phase_steps),
             "phase_temperature": self.phase_temperature,
             "landmark_hash": self.landmark_hash,
+            "observation_model": self.observation_model,
         }
 
 
@@ -115,6 +118,7 @@ class LibraryFeaturizer:
         self.registrar = registrar or LibraryRegistrar(params)
         self.phase_temperature = float(phase_temperature)
         self.library_hash = library.content_hash()
+        self.observation = ObservationModel.of_library_metadata(library.metadata)
         self._clouds = library.clouds()
         self._steps_a = library.step_indices()
         self._phase_steps = tuple(int(k) for k in np.unique(self._steps_a))
@@ -157,6 +161,7 @@ class LibraryFeaturizer:
             self._phase_steps,
             self.phase_temperature,
             self.landmarks.content_hash() if self.landmarks is not None else None,
+            self.observation.value,
         )
 
     @classmethod
@@ -167,6 +172,15 @@ class LibraryFeaturizer:
             phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
             landmarks=getattr(model, "landmarks", None),
         )
+        model_obs = ObservationModel.parse(
+            model.feature_spec.get("observation_model", ObservationModel.CLOUD.value)
+        )
+        if model_obs is not featurizer.observation:
+            raise InvalidInputError(
+                f"the model was trained on '{model_obs.value}' observations but this library's "
+                f"clouds are '{featurizer.observation.value}': use a library and model made with "
+                "the same observation model"
+            )
         theirs = model.feature_spec.get("names")
         if theirs is not None and list(theirs) != list(featurizer.feature_spec.names):
             raise InvalidInputError(
@@ -193,6 +207,10 @@ class LibraryFeaturizer:
     def action_index(self, demo_key: str) -> int:
         """Row of ``demo_key`` in phi_ad."""
         return self.library.index_of(demo_key)
+
+    def observe(self, world, *, noise: float = 0.0, seed: int | None = None) -> np.ndarray:
+        """The scene cloud of ``world``'s rope under this library's observation model."""
+        return observe(world, self.observation, noise=noise, seed=seed)
 
     def scan(self, cloud_n3: np.ndarray, timings: dict | None = None) -> ScanResult:
         """Register the cloud against every demo (cached demo side)."""

@@ -106,7 +106,7 @@ class _Search:
 
     def _descend(self, outcome, steps_left: int):
         self.world.restore(outcome.snapshot_after)
-        child_cloud = self.world.observe()
+        child_cloud = self.featurizer.observe(self.world)
         nodes = outcome.nodes_after_k3
         result, exhaustive = self.solve(
             outcome.snapshot_after, child_cloud, nodes, outcome.stage, steps_left - 1
@@ -129,7 +129,7 @@ def label_task(
     t0 = time.perf_counter()
     world.reset(start_nodes_k3)
     snapshot = world.snapshot()
-    cloud = world.observe()
+    cloud = featurizer.observe(world)
     nodes = world.rope_nodes()
     stage, _ = rope_stage(nodes)
     search = _Search(world, featurizer, transferer, params)

@@ -173,7 +173,7 @@ class LookaheadPolicy(Policy):
                         value = -np.inf
                         child_q = None
                     else:
-                        child_cloud = world.observe()
+                        child_cloud = ctx.featurizer.observe(world)
                         child_q = self._q(ctx.featurizer, child_cloud)
                         value = float(np.max(child_q))
                     depth_reached = level + 1

@@ -55,20 +55,31 @@ from numba import njit
 from core.errors import InvalidInputError, SolverError
 from core.tps import ThinPlateSpline, TpsBasis, tps_basis
 
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2
 _MAX_EXPONENT = 80.0
 
 
 @dataclass(frozen=True)
 class RegistrationParams:
-    """Settings of bidirectional TPS-RPM (paper-era rll/lfd values by default)."""
+    """Settings of bidirectional TPS-RPM, every length-dependent one in WORLD units (metres).
+
+    The fit in world coordinates minimises
+        sum ||y - f(x)||^2 [m^2] + lambda tr(W^T K W) [lambda in m] + tr((B-I)^T R (B-I)) [R in m^2]
+    and the affinity is exp(-d / (2 T)) with d and T in metres. The kernel works in coordinates
+    divided by `scale_m`; `normalised_schedule` and `normalised_rot_coef` convert once (lambda / s,
+    T / s, R / s^2), so changing `scale_m` leaves the world-space fit unchanged (tested). Stating
+    R in the internal units made it 1 / s^2 = 4x weaker than meant (issue 12's bug A).
+    Defaults: the paper-era rll/lfd schedule as this project ran it (lambda 0.1 -> 0.001 and
+    T 0.1 -> 0.005 in units of 0.5 m) and the identity pull (1e-3, 1e-3, 0.1) that made transfer
+    work in the rope-world prototype (transfer_notes.md).
+    """
 
     n_iter: int = 10
-    bend_init: float = 0.1
-    bend_final: float = 0.001
-    temp_init: float = 0.1
-    temp_final: float = 0.005
-    rot_coef: tuple[float, float, float] = (1e-4, 1e-4, 0.1)
+    bend_init: float = 0.05
+    bend_final: float = 0.0005
+    temp_init: float = 0.05
+    temp_final: float = 0.0025
+    rot_coef: tuple[float, float, float] = (1e-3, 1e-3, 0.1)
     outlier_prior: float = 0.1
     outlier_frac: float = 0.01
     outlier_cutoff: float = 0.01
@@ -91,14 +102,25 @@ class RegistrationParams:
             raise InvalidInputError(f"unknown target_rule/dtype {self.target_rule}/{self.dtype}")
 
     def schedule(self) -> tuple[np.ndarray, np.ndarray]:
-        """(lambda_i, T_i): geometric from init to final over n_iter iterations."""
+        """(lambda_i, T_i) in world units: geometric from init to final over n_iter iterations."""
         return (
             np.geomspace(self.bend_init, self.bend_final, self.n_iter),
             np.geomspace(self.temp_init, self.temp_final, self.n_iter),
         )
 
+    def normalised_schedule(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lambda_i / s, T_i / s): the schedule in the kernel's coordinates (x / scale_m)."""
+        lams, temps = self.schedule()
+        return lams / self.scale_m, temps / self.scale_m
 
-EXACT = RegistrationParams(n_iter=50, bend_init=10.0, target_rule="weighted", dtype="float64")
+    @property
+    def normalised_rot_coef(self) -> tuple[float, float, float]:
+        """R / s^2: the identity pull in the kernel's coordinates (residuals scale by 1 / s^2)."""
+        s2 = self.scale_m**2
+        return (self.rot_coef[0] / s2, self.rot_coef[1] / s2, self.rot_coef[2] / s2)
+
+
+EXACT = RegistrationParams(n_iter=50, bend_init=5.0, target_rule="weighted", dtype="float64")
 SCAN = RegistrationParams()
 
 COST_NAMES: tuple[str, ...] = (
@@ -255,7 +277,7 @@ def _build_side(
         centre = np.median(cloud, axis=0)
         x = (cloud - centre) / params.scale_m
         try:
-            basis = tps_basis(x, params.rot_coef)
+            basis = tps_basis(x, params.normalised_rot_coef)
         except SolverError as exc:
             reason[a] = str(exc)
             continue
@@ -715,7 +737,7 @@ def _rpm_batch(
     a_out = np.array(m * frac, dt)
     b_out = (n_valid * frac).astype(dt)
     corner = (corner_coef * np.sqrt(n_valid * m)).astype(dt)
-    lams, temps = params.schedule()
+    lams, temps = params.normalised_schedule()
     cst = _consts(dt, params)
     bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)
     e_bias, e_shift = (127, 23) if dt == np.float32 else (1023, 52)

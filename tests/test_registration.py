@@ -39,6 +39,28 @@ def test_exact_recovers_moderate_warp_within_1cm(seed: int) -> None:
     assert np.median(back) < 0.01
 
 
+@pytest.mark.parametrize("scale", [0.25, 1.0, 2.0])
+def test_internal_scale_does_not_change_the_world_fit(scale: float) -> None:
+    # Regularisers are stated in world units and converted once: the kernel's internal length
+    # scale_m is a numerical detail, so the warp in metres must not move when it changes.
+    rng = np.random.default_rng(3)
+    demo = rope_cloud(rng, 80)
+    scene = corrupt(rng, smooth_warp(rng, 0.03, angle_rad=0.3)(demo), 0.002, 0.0)
+    probe = demo + np.array([0.0, 0.0, 0.3])  # gripper waypoints above the rope
+    base = register(demo, scene, EXACT)
+    other = register(demo, scene, replace(EXACT, scale_m=EXACT.scale_m * scale))
+    np.testing.assert_allclose(other.f(probe), base.f(probe), atol=1e-6)
+    np.testing.assert_allclose(other.g(scene), base.g(scene), atol=1e-6)
+    assert other.costs.residual_fwd_m == pytest.approx(base.costs.residual_fwd_m, abs=1e-8)
+
+
+def test_identity_pull_is_stated_in_world_units() -> None:
+    # R / s^2 in the kernel's coordinates: (1e-3, 1e-3, 0.1) m^2 at s = 0.5 m is (4e-3, 4e-3, 0.4).
+    np.testing.assert_allclose(SCAN.normalised_rot_coef, (4e-3, 4e-3, 0.4))
+    lams, temps = SCAN.normalised_schedule()
+    np.testing.assert_allclose([lams[0], temps[0]], [0.1, 0.1])
+
+
 @pytest.mark.parametrize("params", [SCAN, EXACT], ids=["scan", "exact"])
 def test_identical_clouds_give_near_zero_cost(params: RegistrationParams) -> None:
     rng = np.random.default_rng(4)
@@ -172,13 +194,13 @@ def _numpy_reference(demo, scene, params):
     from core.tps import tps_basis
 
     x, y = demo, scene
-    bx, by = tps_basis(x, params.rot_coef), tps_basis(y, params.rot_coef)
+    bx, by = tps_basis(x, params.normalised_rot_coef), tps_basis(y, params.normalised_rot_coef)
     n, m = len(x), len(y)
     prior, frac, cutoff = params.outlier_prior, params.outlier_frac, params.outlier_cutoff
     weighted = params.target_rule == "weighted"
     corner = (prior if weighted else frac) * np.sqrt(n * m)
     fx, gy = x.copy(), y.copy()
-    for lam, temp in zip(*params.schedule(), strict=True):
+    for lam, temp in zip(*params.normalised_schedule(), strict=True):
         d = np.linalg.norm(fx[:, None] - y[None], axis=2) + np.linalg.norm(
             x[:, None] - gy[None], axis=2
         )
