@@ -1,4 +1,4 @@
-"""Observation-model study: NN (and the simulation oracle) on training starts, per observation model.
+"""Observation-model study: NN and the simulation oracle on training starts, per observation model.
 
 For each observation model (`core.observation`: centreline, cloud, tracked) a demo library is
 generated with that model (same seed, so the same demos and start ropes; only the clouds differ)
@@ -106,7 +106,8 @@ def main() -> int:
             )
     m = machine_info()
     print(
-        f"# observation-model study, main training starts; {m.get('cpu_model')}, {args.workers} workers"
+        f"# observation-model study, main training starts; {m.get('cpu_model')}, "
+        f"{args.workers} workers"
     )
     print(
         "| observation | policy | success | Wilson 95 % | step 1 adv. | step 2 adv. | step 3 adv. |"
