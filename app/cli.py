@@ -8,14 +8,14 @@ import sys
 
 # Each module exposes `register(subparsers)` and sets `func` on its parsers.
 COMMAND_MODULES: tuple[str, ...] = (
-    "app.cmd_tie",
-    "app.cmd_db",
-    "app.cmd_labels",
-    "app.cmd_demos",
-    "app.cmd_tasks",
-    "app.cmd_label",
-    "app.cmd_train",
-    "app.cmd_bench",
+    "knotlab.app.cmd_tie",
+    "knotlab.app.cmd_db",
+    "knotlab.app.cmd_labels",
+    "knotlab.app.cmd_demos",
+    "knotlab.app.cmd_tasks",
+    "knotlab.app.cmd_label",
+    "knotlab.app.cmd_train",
+    "knotlab.app.cmd_bench",
 )
 
 

@@ -9,8 +9,8 @@ import math
 import sys
 from pathlib import Path
 
-from app import defaults
-from core.errors import KnotlabError
+from knotlab.app import defaults
+from knotlab.core.errors import KnotlabError
 
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
@@ -41,16 +41,16 @@ def _json_safe(value):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from core.bench import (
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.experiments.bench import (
         BenchMismatchError,
         format_table,
         needs_model,
         run_bench,
         validate_policies,
     )
-    from core.demos import DemoLibrary
-    from core.learn import QModel
-    from core.tasks import TaskSet
+    from knotlab.core.selection.qmodel import QModel
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     policies = [p.strip() for p in args.policies.split(",") if p.strip()]

@@ -4,38 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 
-from labeling_db.errors import LabelingDbError
-from labeling_db.store import DEFAULT_URL, open_store, schema_status, upgrade_database
-
-URL_ENV = "KNOTLAB_DB_URL"
-
-
-def default_url() -> str:
-    """The database URL used when --url is not given: $KNOTLAB_DB_URL, else the SQLite file."""
-    return os.environ.get(URL_ENV, DEFAULT_URL)
-
-
-def add_url_argument(parser: argparse.ArgumentParser) -> None:
-    """Add the shared --url option."""
-    parser.add_argument(
-        "--url",
-        default=None,
-        help=f"database URL (default: ${URL_ENV} or {DEFAULT_URL}); "
-        "e.g. postgresql+psycopg://user@host/db",
-    )
-
-
-def fail(exc: Exception) -> int:
-    """Print a labelling-database error the way the command line reports errors; exit code 2."""
-    print(f"knotlab: error: {exc}", file=sys.stderr)
-    return 2
+from knotlab.app.options import add_db_argument, db_url, fail
 
 
 def _init(args: argparse.Namespace) -> int:
-    url = args.url or default_url()
+    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.labeling_db.store import upgrade_database
+
+    url = db_url(args)
     try:
         before, after = upgrade_database(url, create=True)
     except LabelingDbError as exc:
@@ -50,7 +27,10 @@ def _init(args: argparse.Namespace) -> int:
 
 
 def _upgrade(args: argparse.Namespace) -> int:
-    url = args.url or default_url()
+    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.labeling_db.store import upgrade_database
+
+    url = db_url(args)
     try:
         before, after = upgrade_database(url, create=False)
     except LabelingDbError as exc:
@@ -63,7 +43,10 @@ def _upgrade(args: argparse.Namespace) -> int:
 
 
 def _stats(args: argparse.Namespace) -> int:
-    url = args.url or default_url()
+    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.labeling_db.store import open_store, schema_status
+
+    url = db_url(args)
     try:
         status = schema_status(url)
         with open_store(url, create=False, auto_upgrade=False) as store:
@@ -87,12 +70,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     db = subparsers.add_parser("db", help="create, migrate and inspect the labelling database")
     sub = db.add_subparsers(dest="db_command", required=True, metavar="ACTION")
     p = sub.add_parser("init", help="create the schema (or report that it exists)")
-    add_url_argument(p)
+    add_db_argument(p)
     p.set_defaults(func=_init)
     p = sub.add_parser("upgrade", help="migrate an existing database to the newest schema")
-    add_url_argument(p)
+    add_db_argument(p)
     p.set_defaults(func=_upgrade)
     p = sub.add_parser("stats", help="row counts, labels by source and outcome, schema revision")
-    add_url_argument(p)
+    add_db_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_stats)

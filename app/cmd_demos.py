@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from core.demos import DemoLibrary
-from core.observation import DEFAULT_OBSERVATION, ObservationModel
+from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate and save a library; print a one-line summary."""
-    from core.demogen import GenSettings, generate_library
+    from knotlab.core.demos.generation import GenSettings, generate_library
 
     report = generate_library(
         args.starts,
@@ -68,6 +67,8 @@ def run_generate(args: argparse.Namespace) -> int:
 
 def run_info(args: argparse.Namespace) -> int:
     """Load (validating) a library and print its summary."""
+    from knotlab.core.demos.library import DemoLibrary
+
     lib = DemoLibrary.load(args.path)
     s = lib.summary()
     if args.json:

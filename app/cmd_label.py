@@ -8,10 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from app import defaults
-from core.demos import DemoLibrary
-from core.labeller import OracleParams, oracle_label_tasks
-from core.tasks import TaskSet
+from knotlab.app import defaults
+from knotlab.app.options import add_db_argument, db_url
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -31,9 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--task-file", type=Path, help="task set file (default: the level's shipped set)"
     )
     p.add_argument("--library", type=Path, default=defaults.LIBRARY_PATH, help="demo library file")
-    p.add_argument(
-        "--db", default=defaults.DB_URL, help=f"labelling database URL (default {defaults.DB_URL})"
-    )
+    add_db_argument(p)
     p.add_argument("--limit", type=int, help="label only the first N tasks")
     p.add_argument("--candidates", type=int, default=10, help="demos tried per state")
     p.add_argument("--sim-budget", type=int, default=60, help="simulated actions per task")
@@ -44,7 +40,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
-    from labeling_db.store import open_store
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.experiments.labeller import OracleParams, oracle_label_tasks
+    from knotlab.labeling_db.store import open_store
+
+    args.db = db_url(args)
 
     task_path = args.task_file or defaults.task_set_path(args.level, args.tasks)
     tasks = TaskSet.load(task_path)

@@ -6,14 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.cmd_db import add_url_argument, default_url, fail
-from labeling_db.errors import LabelingDbError
-from labeling_db.interchange import export_labels, import_labels
-from labeling_db.store import open_store
+from knotlab.app.options import add_db_argument, db_url, fail
 
 
 def _export(args: argparse.Namespace) -> int:
-    url = args.url or default_url()
+    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.labeling_db.interchange import export_labels
+    from knotlab.labeling_db.store import open_store
+
+    url = db_url(args)
     try:
         with open_store(url, create=False, auto_upgrade=False) as store:
             if args.out in (None, "-"):
@@ -31,7 +32,11 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    url = args.url or default_url()
+    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.labeling_db.interchange import import_labels
+    from knotlab.labeling_db.store import open_store
+
+    url = db_url(args)
     try:
         with open_store(url, create=True, auto_upgrade=False) as store:
             n = import_labels(store, args.path, args.format, if_exists=args.if_exists)
@@ -49,7 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("jsonl", "csv"), default="jsonl")
     p.add_argument("--out", default=None, help="output file (default: stdout)")
     p.add_argument("--source", choices=("oracle", "human"), default=None, help="only this source")
-    add_url_argument(p)
+    add_db_argument(p)
     p.set_defaults(func=_export)
     p = sub.add_parser("import", help="validate a labels file, then store all of it or nothing")
     p.add_argument("path", help="a .jsonl or .csv file written by `knotlab labels export`")
@@ -60,5 +65,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="error",
         help="an execution id already stored: abort the import (default) or skip it",
     )
-    add_url_argument(p)
+    add_db_argument(p)
     p.set_defaults(func=_import)

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app import defaults
-from core.tasks import TaskSet
+from knotlab.app import defaults
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,8 +42,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate both splits and save them."""
-    from core.demos import DemoLibrary
-    from core.tasks import generate_tasks
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import generate_tasks
 
     lib = DemoLibrary.load(args.library)
     starts = lib.start_states()
@@ -74,7 +73,7 @@ def run_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def summary(ts: TaskSet) -> dict:
+def summary(ts) -> dict:
     """Counts and settings of a task set (the `tasks info --json` keys)."""
     sources = np.array([t.source_start for t in ts])
     return {
@@ -93,6 +92,8 @@ def summary(ts: TaskSet) -> dict:
 
 def run_info(args: argparse.Namespace) -> int:
     """Load (validating) a task set and print its summary."""
+    from knotlab.core.demos.tasks import TaskSet
+
     s = summary(TaskSet.load(args.path))
     if args.json:
         print(json.dumps({"path": str(args.path), **s}, sort_keys=True))

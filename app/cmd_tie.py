@@ -6,11 +6,6 @@ import argparse
 import json
 import time
 
-from core.knot import analyse_knot
-from core.knot_sequence import overhand_sequence
-from core.rope import straight_rope
-from core.sim import RopeParams, RopeWorld
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `tie` sub-command."""
@@ -27,6 +22,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tie the knot; 0 if the final rope is an overhand knot, 1 otherwise."""
+    from knotlab.core.world.knot import analyse_knot
+    from knotlab.core.world.knot_sequence import overhand_sequence
+    from knotlab.core.world.rope import straight_rope
+    from knotlab.core.world.sim import RopeParams, RopeWorld
+
     params = RopeParams()
     wall0 = time.perf_counter()
     steps = []

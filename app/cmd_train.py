@@ -16,16 +16,14 @@ import json
 import logging
 import math
 import sys
-import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from app import defaults
-from core.errors import KnotlabError
-from core.labels import LabelledExecution
-from core.learn import LabelledState, QModel, TrainingData
+from knotlab.app import defaults
+from knotlab.app.options import add_db_argument, default_db_url
+from knotlab.core.errors import KnotlabError
+from knotlab.core.selection.labels import LabelledExecution
 
 log = logging.getLogger(__name__)
 
@@ -63,137 +61,13 @@ def _fail(message: str) -> int:
 def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExecution]:
     """Labelled executions from a labels file, or the labelling database's completed episodes."""
     if labels is not None:
-        from labeling_db.interchange import read_labels
+        from knotlab.labeling_db.interchange import read_labels
 
         return [item.execution for item in read_labels(labels)]
-    from labeling_db.store import open_store
+    from knotlab.labeling_db.store import open_store
 
-    with open_store(db_url or defaults.DB_URL, create=False, auto_upgrade=False) as store:
+    with open_store(db_url or default_db_url(), create=False, auto_upgrade=False) as store:
         return store.training_executions()
-
-
-def split_executions(
-    n: int, validation_fraction: float, seed: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of training and validation executions (seeded; >= 1 of each when n >= 2)."""
-    if not 0.0 <= validation_fraction < 1.0:
-        raise ValueError(f"validation fraction must be in [0, 1), got {validation_fraction}")
-    order = np.random.default_rng(seed).permutation(n)
-    n_val = round(validation_fraction * n)
-    n_val = min(max(n_val, 1), n - 1) if validation_fraction > 0 and n >= 2 else 0
-    return np.sort(order[n_val:]), np.sort(order[:n_val])
-
-
-# --------------------------------------------------------------- featurising (worker processes)
-
-_FEATURIZER = None  # this process's LibraryFeaturizer, built once by the initializer
-
-
-def _init_featurizer(library, landmarks=None) -> None:
-    global _FEATURIZER
-    from core.features import LibraryFeaturizer
-
-    _FEATURIZER = LibraryFeaturizer(library, landmarks=landmarks)
-
-
-def _featurize(execution: LabelledExecution) -> TrainingData | str:
-    """QP inputs of one execution, or why it cannot be used (a message)."""
-    from core.learn import build_training_data
-
-    try:
-        return build_training_data([execution], _FEATURIZER)
-    except (KnotlabError, ValueError, np.linalg.LinAlgError) as exc:
-        return f"{type(exc).__name__}: {exc}"
-
-
-def merge_training_data(parts: Sequence[TrainingData]) -> TrainingData:
-    """Concatenate per-execution training data, renumbering states and executions."""
-    states: list[LabelledState] = []
-    pairs: list[tuple[int, int]] = []
-    goals: list[int] = []
-    dead: list[np.ndarray] = []
-    for e, part in enumerate(parts):
-        off = len(states)
-        states += [
-            LabelledState(s.phi_ad, s.expert_action, s.margins_a, e, s.step) for s in part.states
-        ]
-        pairs += [(i + off, j + off) for i, j in part.bellman_pairs]
-        goals += [g + off for g in part.goal_states]
-        dead += list(part.dead_ends_phi)
-    return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead))
-
-
-def featurize_executions(
-    executions: Sequence[LabelledExecution],
-    library,
-    *,
-    workers: int | None,
-    progress: bool,
-    landmarks=None,
-) -> tuple[list[TrainingData | None], list[str]]:
-    """Per-execution training data (None where unusable) and the warnings about those."""
-    results = _map_featurize(executions, library, workers, progress, landmarks)
-    parts: list[TrainingData | None] = []
-    warnings: list[str] = []
-    for ex, r in zip(executions, results, strict=True):
-        if isinstance(r, str):
-            warnings.append(f"execution {ex.execution_id} skipped: {r}")
-            parts.append(None)
-        else:
-            parts.append(r)
-    return parts, warnings
-
-
-def _map_featurize(executions, library, workers, progress, landmarks):
-    from functools import partial
-
-    from core.parallel import map_processes
-
-    return map_processes(
-        _featurize,
-        list(executions),
-        workers=workers,
-        initializer=partial(_init_featurizer, library, landmarks),
-        desc="featurising labelled states",
-        progress=progress,
-    )
-
-
-def ranking_metrics(model: QModel, data: TrainingData) -> dict:
-    """Top-1 agreement with the expert and the expert demo's mean rank (0 = first) under Q."""
-    ranks = []
-    for s in data.states:
-        q = model.q(s.phi_ad)
-        ranks.append(int(np.sum(q > q[s.expert_action])))
-    r = np.asarray(ranks)
-    return {
-        "n_states": len(ranks),
-        "top1": float(np.mean(r == 0)),
-        "top3": float(np.mean(r < 3)),
-        "mean_expert_rank": float(r.mean()),
-        "median_expert_rank": float(np.median(r)),
-        **value_metrics(model, data),
-    }
-
-
-def value_metrics(model: QModel, data: TrainingData) -> dict:
-    """How well V(s) = max_a Q(s, a) tells expert states from dead ends (what lookahead uses).
-
-    ``value_auc`` is P(V(expert state) > V(dead end)) over all pairs (0.5 = no better than chance).
-    """
-    v_states = np.array([np.max(model.q(s.phi_ad)) for s in data.states])
-    v_dead = np.array([np.max(model.q(phi)) for phi in data.dead_ends_phi])
-    out = {
-        "n_dead_ends": len(v_dead),
-        "mean_value_states": float(v_states.mean()) if len(v_states) else float("nan"),
-        "mean_value_dead_ends": float(v_dead.mean()) if len(v_dead) else float("nan"),
-        "value_auc": float("nan"),
-    }
-    if len(v_states) and len(v_dead):
-        greater = (v_states[:, None] > v_dead[None, :]).mean()
-        ties = (v_states[:, None] == v_dead[None, :]).mean()
-        out["value_auc"] = float(greater + 0.5 * ties)
-    return out
 
 
 def _json_safe(value):
@@ -209,10 +83,8 @@ def _json_safe(value):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from core.demos import DemoLibrary
-    from core.features import LibraryFeaturizer
-    from core.landmarks import sample_landmarks
-    from core.learn import MaxMarginQLearner
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.selection.model_selection import QModelSearch, SelectBy
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.labels is not None and args.db is not None:
@@ -239,124 +111,52 @@ def _run(args: argparse.Namespace) -> int:
             f"library than {lib_hash}; their features are recomputed with this one",
             file=sys.stderr,
         )
-    try:
-        train_idx, val_idx = split_executions(len(executions), args.validation_fraction, args.seed)
-    except ValueError as exc:
-        return _fail(str(exc))
-
-    # Landmarks come from the training split only, so validation states stay unseen.
-    n_landmark_labelled, n_landmark_dead = args.landmarks
-    landmarks = sample_landmarks(
-        [executions[i] for i in train_idx],
-        n_labelled=n_landmark_labelled,
-        n_dead_ends=n_landmark_dead,
-        seed=args.seed,
-    )
-    t0 = time.perf_counter()
-    parts, warnings = featurize_executions(
-        executions,
-        library,
+    search = QModelSearch(
+        C=args.C,
+        D=args.D,
+        margin_scale=args.margin_scale,
+        landmarks=args.landmarks,
+        select=SelectBy(args.select),
+        validation_fraction=args.validation_fraction,
+        refit_all=args.refit_all,
+        random_state=args.seed,
         workers=args.workers,
         progress=not args.no_progress,
-        landmarks=landmarks,
+        on_warning=lambda msg: print(f"warning: {msg}", file=sys.stderr),
     )
-    featurize_s = time.perf_counter() - t0
-    for w in warnings:
-        print(f"warning: {w}", file=sys.stderr)
-    train_parts = [parts[i] for i in train_idx if parts[i] is not None]
-    val_parts = [parts[i] for i in val_idx if parts[i] is not None]
-    if not train_parts:
-        return _fail("no usable training executions after featurising (see warnings)")
-    train_data = merge_training_data(train_parts)
-    val_data = merge_training_data(val_parts) if val_parts else None
-    if val_data is not None and not val_data.states:
-        val_data = None  # held-out executions with dead ends only: nothing to rank
-    featurizer = LibraryFeaturizer(library, landmarks=landmarks)
-    # A grid of (C, D) is fitted on the training split and ranked on the validation split only
-    # (top-1 agreement with the expert, then the expert's mean rank): the test set never
-    # chooses hyper-parameters.
-    sweep = []
-    for C in args.C:
-        for D in args.D:
-            learner = MaxMarginQLearner(
-                C=C, D=D, margin_scale=args.margin_scale, featurizer=featurizer
-            )
-            t1 = time.perf_counter()
-            try:
-                fitted = learner.fit(train_data)
-            except KnotlabError as exc:
-                print(f"warning: C={C:g}, D={D:g}: training failed: {exc}", file=sys.stderr)
-                continue
-            val = ranking_metrics(fitted, val_data) if val_data is not None else None
-            sweep.append((C, D, fitted, val, learner, time.perf_counter() - t1))
-    if not sweep:
-        return _fail("training failed for every (C, D)")
-
-    def score(entry):
-        _, _, fitted, val, _, _ = entry
-        if val is None:
-            return (fitted.metrics["train_top1"], -fitted.metrics["train_mean_expert_rank"])
-        ranking = (val["top1"], -val["mean_expert_rank"])
-        if args.select == "value_auc":  # for lookahead: values that tell dead ends apart
-            auc = val["value_auc"]
-            return (auc if math.isfinite(auc) else -1.0, *ranking)
-        return ranking
-
-    best = max(sweep, key=score)
-    C_best, D_best, model, validation, learner, fit_s = best
-    if len(sweep) > 1:
+    try:
+        search.fit(executions, library)
+    except KnotlabError as exc:
+        return _fail(str(exc))
+    best = search.best_
+    model, validation, final = best.model, search.validation_, search.best_model_
+    if len(search.sweep_) > 1:
         print("  C        D        val top-1  val top-3  val mean rank  val V-AUC  train top-1")
-        for C, D, fitted, val, _, _ in sweep:
-            v = val or {
-                "top1": float("nan"),
-                "top3": float("nan"),
-                "mean_expert_rank": float("nan"),
-                "value_auc": float("nan"),
+        nan = float("nan")
+        for point in search.sweep_:
+            v = point.validation or {
+                "top1": nan,
+                "top3": nan,
+                "mean_expert_rank": nan,
+                "value_auc": nan,
             }
-            mark = "  <- chosen" if (C_best, D_best) == (C, D) else ""
+            mark = "  <- chosen" if point is best else ""
             print(
-                f"  {C:<8g} {D:<8g} {v['top1']:9.3f}  {v['top3']:9.3f}  "
+                f"  {point.C:<8g} {point.D:<8g} {v['top1']:9.3f}  {v['top3']:9.3f}  "
                 f"{v['mean_expert_rank']:13.2f}  {v['value_auc']:9.3f}  "
-                f"{fitted.metrics['train_top1']:11.3f}{mark}"
+                f"{point.model.metrics['train_top1']:11.3f}{mark}"
             )
-    final = model
-    if args.refit_all and val_parts:
-        final = learner.fit(merge_training_data(train_parts + val_parts))
-    info = {
-        "labels": args.labels or (args.db or defaults.DB_URL),
-        "library_hash": lib_hash,
-        "n_executions": len(executions),
-        "n_train_executions": len(train_parts),
-        "n_validation_executions": len(val_parts),
-        "n_skipped_executions": len(warnings),
-        "validation_fraction": args.validation_fraction,
-        "split_seed": args.seed,
-        "refit_all": bool(args.refit_all and val_parts),
-        "validation": validation,
-        "select": args.select,
-        "landmarks": {
-            "labelled": n_landmark_labelled,
-            "dead_end": n_landmark_dead,
-            "n": len(landmarks),
-            "hash": landmarks.content_hash(),
-        },
-        "C": C_best,
-        "D": D_best,
-        "sweep": [
-            {"C": C, "D": D, "validation": val, "train_top1": f.metrics["train_top1"]}
-            for C, D, f, val, _, _ in sweep
-        ],
-        "featurize_s": round(featurize_s, 3),
-        "fit_s": round(fit_s, 3),
-    }
+    info = {"labels": args.labels or (args.db or default_db_url()), **search.info_}
     final = dataclasses.replace(final, metrics={**final.metrics, "training_run": info})
     final.save(out_path)
+    featurize_s, fit_s = search.featurize_s_, best.fit_s
+    train_n, val_n = search.n_train_executions_, search.n_validation_executions_
 
     m = model.metrics
     print(
-        f"knotlab train: {len(train_parts)} training executions ({m.get('n_states')} states, "
+        f"knotlab train: {train_n} training executions ({m.get('n_states')} states, "
         f"{m.get('n_margin_rows')} margin rows, {m.get('n_bellman_rows')} Bellman rows, "
-        f"{m.get('n_dead_ends')} dead ends), {len(val_parts)} held out; "
+        f"{m.get('n_dead_ends')} dead ends), {val_n} held out; "
         f"featurised in {featurize_s:.1f} s, QP solved in {fit_s:.2f} s ({m.get('status')})"
     )
     print(
@@ -403,11 +203,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     src = p.add_mutually_exclusive_group()
     src.add_argument("--labels", default=None, help="labels file (.jsonl or .csv) to train on")
-    src.add_argument(
-        "--db",
-        default=None,
-        help=f"labelling database URL (default when no --labels: {defaults.DB_URL})",
-    )
+    add_db_argument(src)
     p.add_argument(
         "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
     )

@@ -23,14 +23,11 @@ import statistics
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.labels import LabelledExecution, LabelledStep
-from labeling_db.store import StateProvenance, open_store
+from knotlab.core.selection.labels import LabelledExecution, LabelledStep
+from knotlab.labeling_db.store import StateProvenance, open_store
 
 STEPS = 5
 

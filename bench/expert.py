@@ -1,6 +1,6 @@
 """Success table of the scripted expert over seeded start ropes (3 / 6 cm bends, both chiralities).
 
-Each start rope is drawn by `core.expert.sample_start_rope` (sine bends, any orientation, anywhere
+Each start rope is drawn by `expert.sample_start_rope` (sine bends, any orientation, anywhere
 within +-0.15 m), the expert runs with the nominal style (chirality alternating by start), up to
 3 tries of steps 2 and 3 from the same state and up to 8 loops (restarts). Prints, per bend
 amplitude and chirality: knots, the step at which failed demos gave up, rejected tries per step,
@@ -19,14 +19,11 @@ import platform
 import sys
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.expert import ExpertStyle, run_expert, sample_start_rope
-from core.parallel import default_workers, imap_processes
+from knotlab.core.demos.expert import ExpertStyle, run_expert, sample_start_rope
+from knotlab.core.parallel import default_workers, imap_processes
 
 _WORLD: dict[str, object] = {}
 
@@ -42,7 +39,7 @@ class _Job:
 
 
 def _run(job: _Job) -> dict:
-    from core.sim import RopeWorld
+    from knotlab.core.world.sim import RopeWorld
 
     if "w" not in _WORLD:
         _WORLD["w"] = RopeWorld()

@@ -25,13 +25,10 @@ import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.learn import LabelledState, MaxMarginQLearner, TrainingData  # noqa: E402
+from knotlab.core.selection.learner import LabelledState, MaxMarginQLearner, TrainingData  # noqa: E402
 
 N_STEPS = 3  # demo steps per execution (the overhand knot)
 N_BASE = 14  # non-indicator feature columns
@@ -88,8 +85,8 @@ def synthetic_data(n_states: int, n_demos: int, n_dead: int, seed: int) -> Train
 
 def real_data(library_path: str, n_states: int, n_dead: int, seed: int):
     """States = library clouds jittered by 5 mm, expert = the demo the cloud came from."""
-    from core.demos import DemoLibrary
-    from core.features import LibraryFeaturizer
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.selection.features import LibraryFeaturizer
 
     lib = DemoLibrary.load(library_path)
     fz = LibraryFeaturizer(lib)
@@ -148,9 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     n_actions = data.states[0].phi_ad.shape[0]
     times, model = [], None
     for _ in range(args.repeats):
-        learner = MaxMarginQLearner(C=args.C, D=args.D, featurizer=featurizer)
+        learner = MaxMarginQLearner(C=args.C, D=args.D)
         t0 = time.perf_counter()
-        model = learner.fit(data)
+        model = learner.fit(data, featurizer)
         times.append(time.perf_counter() - t0)
     m = model.metrics
     result = {

@@ -1,6 +1,6 @@
 """Observation-model study: NN and the simulation oracle on training starts, per observation model.
 
-For each observation model (`core.observation`: centreline, cloud, tracked) a demo library is
+For each observation model (`core.world.observation`: centreline, cloud, tracked) a demo library is
 generated with that model (same seed, so the same demos and start ropes; only the clouds differ)
 and NN and the oracle run on the first training starts of the main level. Training starts only:
 this study chooses the default, so it must never see the test set. Resumable (each model's
@@ -20,18 +20,15 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 from collections import Counter  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.bench import run_bench, wilson_interval  # noqa: E402
-from core.demogen import GenSettings, generate_library  # noqa: E402
-from core.demos import DemoLibrary  # noqa: E402
-from core.machine import machine_info  # noqa: E402
-from core.observation import ObservationModel  # noqa: E402
-from core.tasks import TaskSet  # noqa: E402
+from knotlab.core.demos.generation import GenSettings, generate_library  # noqa: E402
+from knotlab.core.demos.library import DemoLibrary  # noqa: E402
+from knotlab.core.demos.tasks import TaskSet  # noqa: E402
+from knotlab.core.experiments.bench import run_bench, wilson_interval  # noqa: E402
+from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.world.observation import ObservationModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -23,19 +23,16 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.machine import cpu_model  # noqa: E402
-from core.registration import (  # noqa: E402
-    _PHASES,
+from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.registration import (  # noqa: E402
     EXACT,
     SCAN,
     LibraryRegistrar,
-    _rpm_batch,
-    _scene_side,
     register,
 )
-from core.synthetic import corrupt, library, rope_cloud, smooth_warp  # noqa: E402
+from knotlab.core.registration.kernel import PHASES  # noqa: E402
+from knotlab.core.registration.rpm import rpm_batch, scene_side  # noqa: E402
+from knotlab.core.registration.synthetic import corrupt, library, rope_cloud, smooth_warp  # noqa: E402
 
 N_DEMOS = 148
 
@@ -75,7 +72,7 @@ def _scan_bench(n_points: int, workers: int, repeats: int, rng: np.random.Genera
     single = LibraryRegistrar(SCAN, chunk_size=16, n_workers=1)
     single.prepare(demos, key="p")
     single_s, _ = _median_time(lambda: single.scan(scene, demos, key="p"), max(3, repeats // 2))
-    phases = _phase_split(single.prepare(demos, key="p"), _scene_side(scene, SCAN), repeats)
+    phases = _phase_split(single.prepare(demos, key="p"), scene_side(scene, SCAN), repeats)
     loop = LibraryRegistrar(SCAN, chunk_size=1, n_workers=1)
     loop.prepare(demos, key="l")
     loop_s, _ = _median_time(lambda: loop.scan(scene, demos, key="l"), 3)
@@ -103,11 +100,11 @@ def _phase_split(demo, scene, repeats: int) -> dict[str, float]:
     idx = np.arange(len(demo))
     out: dict[str, float] = {}
     prev = 0.0
-    for stop, name in enumerate(_PHASES):
+    for stop, name in enumerate(PHASES):
         runs = []
         for _ in range(max(3, repeats)):
             t: dict[str, float] = {}
-            _rpm_batch(demo, idx, scene, SCAN, False, t, stop)
+            rpm_batch(demo, idx, scene, SCAN, False, t, stop)
             runs.append(t)
         kernel = 1000 * float(np.median([t["rpm kernel"] for t in runs]))
         out[name] = kernel - prev
@@ -125,8 +122,9 @@ def _start_up() -> dict:
 
     code = (
         "import time; t0 = time.perf_counter();"
-        "import numpy as np; from core.registration import register, SCAN;"
-        "from core.synthetic import rope_cloud; c = rope_cloud(np.random.default_rng(0), 100);"
+        "import numpy as np; from knotlab.core.registration import register, SCAN;"
+        "from knotlab.core.registration.synthetic import rope_cloud;"
+        "c = rope_cloud(np.random.default_rng(0), 100);"
         "register(c, c + 0.01, SCAN); print(time.perf_counter() - t0)"
     )
     root = str(Path(__file__).resolve().parents[1])

@@ -21,18 +21,15 @@ import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from importlib import metadata  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from core.knot import is_overhand_knot  # noqa: E402
-from core.knot_sequence import overhand_sequence  # noqa: E402
-from core.machine import cpu_model  # noqa: E402
-from core.rope import straight_rope  # noqa: E402
-from core.sim import RopeWorld  # noqa: E402
-from core.trajectory import GripperTrajectory, down_rotation  # noqa: E402
+from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.world.knot import is_overhand_knot  # noqa: E402
+from knotlab.core.world.knot_sequence import overhand_sequence  # noqa: E402
+from knotlab.core.world.rope import straight_rope  # noqa: E402
+from knotlab.core.world.sim import RopeWorld  # noqa: E402
+from knotlab.core.world.trajectory import GripperTrajectory, down_rotation  # noqa: E402
 
 
 def _drag_trajectory() -> GripperTrajectory:

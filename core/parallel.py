@@ -10,12 +10,13 @@ import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 from tqdm import tqdm
 
 T = TypeVar("T")
 R = TypeVar("R")
+S = TypeVar("S")
 
 _BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
@@ -93,3 +94,39 @@ def map_processes(fn: Callable[[T], R], items: Iterable[T], **kwargs) -> list[R]
     for i, result in imap_processes(fn, items, **kwargs):
         out[i] = result
     return out
+
+
+class PerProcess(Generic[S]):
+    """One process's warm state (a simulator, a featurizer, ...), built on first use per key.
+
+    Pool workers keep expensive objects between jobs; a module holds one ``PerProcess`` with the
+    function that builds the state from a key (e.g. a library path), instead of an ad-hoc global
+    dict. A different key replaces the state (closing the old one if it has ``close()``), so a
+    worker never mixes two libraries.
+    """
+
+    def __init__(self, build: Callable[..., S]) -> None:
+        self._build = build
+        self._key: object = None
+        self._state: S | None = None
+
+    def get(self, key: object = None) -> S:
+        """The state for ``key``, built now if this process has none for it."""
+        if self._state is None or key != self._key:
+            self.reset()
+            self._state = self._build() if key is None else self._build(key)
+            self._key = key
+        return self._state
+
+    def current(self) -> S:
+        """The state built last (by a pool initializer, say); an error if there is none."""
+        if self._state is None:
+            raise RuntimeError("per-process state used before it was built")
+        return self._state
+
+    def reset(self) -> None:
+        """Drop (and close) the current state."""
+        state, self._state, self._key = self._state, None, None
+        close = getattr(state, "close", None)
+        if callable(close):
+            close()

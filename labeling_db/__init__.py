@@ -1,10 +1,10 @@
 """The labelling database: expert and oracle labels, rope states, episodes and trained models.
 
 Open it with :func:`open_store` (SQLite file by default, PostgreSQL by URL); records that leave
-it are plain dataclasses (``core.labels.LabelledExecution`` for training data).
+it are plain dataclasses (``knotlab.core.selection.labels.LabelledExecution`` for training data).
 """
 
-from labeling_db.errors import (
+from knotlab.labeling_db.errors import (
     ConflictError,
     CorruptDatabaseError,
     DatabaseBusyError,
@@ -18,7 +18,7 @@ from labeling_db.errors import (
     SchemaTooNewError,
     SchemaVersionError,
 )
-from labeling_db.store import (
+from knotlab.labeling_db.store import (
     DEFAULT_URL,
     EpisodeInfo,
     LabelInfo,

@@ -11,7 +11,7 @@ import struct
 
 import numpy as np
 
-from labeling_db.errors import CorruptDatabaseError, InvalidRecordError
+from knotlab.labeling_db.errors import CorruptDatabaseError, InvalidRecordError
 
 _MAGIC = b"KA"
 _VERSION = 1

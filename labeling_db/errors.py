@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from core.errors import CorruptFileError, InvalidInputError, KnotlabError
+from knotlab.core.errors import CorruptFileError, InvalidInputError, KnotlabError
 
 
 class LabelingDbError(KnotlabError):

@@ -22,11 +22,11 @@ from typing import Any, Literal, TextIO
 
 import numpy as np
 
-from core.errors import InvalidInputError
-from core.labels import OUTCOMES, DeadEndState, LabelledExecution, LabelledStep
-from labeling_db.errors import ConflictError, ImportRowError, InvalidRecordError
-from labeling_db.models import EPISODE_STATUSES
-from labeling_db.store import StateProvenance, Store, StoredExecution
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledExecution, LabelledStep
+from knotlab.labeling_db.errors import ConflictError, ImportRowError, InvalidRecordError
+from knotlab.labeling_db.models import EPISODE_STATUSES
+from knotlab.labeling_db.store import StateProvenance, Store, StoredExecution
 
 Format = Literal["jsonl", "csv"]
 FORMAT_NAME = "knotlab-labels"
@@ -248,7 +248,7 @@ def _parse_step(row: _Row, i: int) -> tuple[LabelledStep, datetime | None, State
             step_index=index,
             cloud_n3=row.get("cloud_n3", "cloud"),
             chosen_demo=row.get("chosen_demo", "str"),
-            outcome=row.enum("outcome", OUTCOMES),  # type: ignore[arg-type]
+            outcome=row.enum("outcome", OUTCOMES),
             rope_nodes_k3=row.get("rope_nodes_k3", "cloud", optional=True),
             candidates=tuple(row.get("candidates", "strlist")),
             candidate_scores_c=row.get("candidate_scores", "vector", optional=True),
@@ -292,7 +292,7 @@ def _build(
     try:
         execution = LabelledExecution(
             execution_id=row.get("execution_id", "str"),
-            source=row.enum("source", ("oracle", "human")),  # type: ignore[arg-type]
+            source=row.enum("source", ("oracle", "human")),
             labeller=row.get("labeller", "str"),
             steps=tuple(s for s, _, _ in steps),
             ended_in_knot=row.get("ended_in_knot", "bool"),
@@ -306,7 +306,7 @@ def _build(
             status=row.enum("status", EPISODE_STATUSES),
             started_at=row.get("started_at", "time"),
             finished_at=row.get("finished_at", "time", optional=True),
-            labelled_at=tuple(times) if times and times[0] is not None else (),  # type: ignore[arg-type]
+            labelled_at=tuple(times) if times and times[0] is not None else (),
             step_provenance=tuple(p for _, _, p in steps),
             dead_end_provenance=tuple(p for _, p in dead),
         )

@@ -13,7 +13,7 @@ export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 # 1. Oracle labels for the training starts (resumable: labelled tasks are skipped).
 $bin/knotlab label --oracle --tasks train --level "$level" --limit "$n_train" --db "$db"
-$bin/knotlab labels export --format jsonl --url "$db" --out "results/labels_oracle_${level}.jsonl"
+$bin/knotlab labels export --format jsonl --db "$db" --out "results/labels_oracle_${level}.jsonl"
 
 # 2. Train on the training labels only (validation split by execution). C = 10, D = 10 with the
 #    original's 50 + 20 landmark states was chosen on the validation split (never the test set):

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.labels import DeadEndState, LabelledExecution, LabelledStep
+from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
 
 REQUIRE_ENV = "KNOTLAB_REQUIRE_POSTGRES"
 

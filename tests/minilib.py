@@ -1,6 +1,6 @@
 """A tiny but real demo library and task sets, built in the simulator once per test session.
 
-The library holds rigid copies of the fixed overhand sequence (`core.knot_sequence`): the straight
+The library holds rigid copies of the fixed overhand sequence (`knot_sequence`): the straight
 rope, a copy shifted 5 cm in y and (with ``n_demos=3``) a copy turned 10 degrees about z. Each
 segment is executed in a `RopeWorld` to record its pre/post rope and observed cloud, so every demo
 is a real, knot-tying demonstration. Tasks are small seeded perturbations of the demo starts,
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from core.demos import DemoLibrary, DemoSegment, segment_key
-from core.knot_sequence import overhand_sequence
-from core.labels import LabelledExecution, LabelledStep
-from core.rope import straight_rope
-from core.tasks import RopeTask, TaskSet, task_seed
+from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
+from knotlab.core.demos.tasks import RopeTask, TaskSet, task_seed
+from knotlab.core.selection.labels import LabelledExecution, LabelledStep
+from knotlab.core.world.knot_sequence import overhand_sequence
+from knotlab.core.world.rope import straight_rope
 
 # (shift in metres, turn about z in degrees) of each demonstration, in start-index order.
 _POSES: tuple[tuple[tuple[float, float, float], float], ...] = (
@@ -40,7 +40,7 @@ def _rot_z(degrees: float) -> np.ndarray:
 @lru_cache(maxsize=4)
 def mini_library(n_demos: int = 2) -> DemoLibrary:
     """``n_demos`` (1-3) rigid copies of the 3-step overhand demo, executed in simulation."""
-    from core.sim import RopeWorld
+    from knotlab.core.world.sim import RopeWorld
 
     if not 1 <= n_demos <= len(_POSES):
         raise ValueError(f"n_demos must be 1..{len(_POSES)}, got {n_demos}")
@@ -80,8 +80,8 @@ def mini_tasks(
     n_tasks: int = 3, split: str = "test", rho: float = 0.02, n_demos: int = 2
 ) -> TaskSet:
     """``n_tasks`` settled starts perturbing the mini library's demo starts (seeded, small rho)."""
-    from core.rope import perturb_rope
-    from core.sim import RopeWorld
+    from knotlab.core.world.rope import perturb_rope
+    from knotlab.core.world.sim import RopeWorld
 
     starts = mini_library(n_demos).start_states()
     keys = sorted(starts)
@@ -139,8 +139,8 @@ def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
     """The mini executions as a `knotlab labels export` JSONL file (what `knotlab train` reads)."""
     from datetime import UTC, datetime
 
-    from labeling_db.interchange import write_labels
-    from labeling_db.store import StoredExecution
+    from knotlab.labeling_db.interchange import write_labels
+    from knotlab.labeling_db.store import StoredExecution
 
     when = datetime(2024, 1, 1, tzinfo=UTC)
     items = [

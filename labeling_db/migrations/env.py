@@ -10,7 +10,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import create_engine
 
-from labeling_db.models import Base
+from knotlab.labeling_db.models import Base
 
 config = context.config
 target_metadata = Base.metadata
@@ -40,7 +40,7 @@ else:
     if given is not None:
         _run(given)
     else:
-        engine = create_engine(config.get_main_option("sqlalchemy.url"))
+        engine = create_engine(config.get_main_option("sqlalchemy.url") or "")
         try:
             with engine.begin() as conn:
                 _run(conn)

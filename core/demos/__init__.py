@@ -1,0 +1,1 @@
+"""The data: the demonstration library file, the scripted expert, library generation, task sets."""

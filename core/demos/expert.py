@@ -1,0 +1,437 @@
+"""The state-aware scripted overhand-knot expert, its style parameters and the start-rope sampler.
+
+The expert ties an overhand knot with one point gripper (the right one; the left stays open and
+parked) in the 3 steps of shared/reference/rope_sim_notes.md section 3, computing every pick and
+place from the rope it observes at that step:
+
+1. **Loop.** Frame: origin at arc length ``loop_start`` from end A, x along the standing part
+   there (chord over the preceding 20 cm), y = ``chirality`` x (x rotated by +90 degrees), so
+   chirality -1 is the mirror variant. Pick end B (``end_grasp`` from the tip), lift it to 0.55 m
+   above the origin and lay the loop down like a pen, descending in proportion to the distance
+   travelled: a 270-degree loop of radius ``loop_radius``, then down across the standing part and
+   along a tail ``tail_drop`` below it.
+2. **Lay the loop's earlier side over the tail.** From the observed loop: its single crossing
+   splits the rope into standing part, loop (between the crossing's two visits) and tail. Tail
+   direction d = chord of the tail's last 8 cm, normal n = perpendicular to d towards the loop
+   centre. Pick where the loop's earlier half crosses the line ``grasp_gx`` beyond the tail tip
+   along d (the crossing nearest the tail, at least ``MIN_PICK_HEIGHT`` from it; else the earlier
+   half's farthest point along d), lift ``lift2``, move to tail tip + ``grasp_gx`` d -
+   ``drag_dy`` n and lower. The target is tied to the tail tip, not to the pick, so the loop's
+   later arm comes back up beyond the tip and only the earlier arm lies over the tail.
+3. **Pull the tail out.** Pick the tail ``end_grasp`` from its tip and move it by
+   ``pull_dx`` d - ``pull_dy`` n (d, n measured after step 1), then lower.
+
+Checks and retries: after each step the open rope's crossing code must be the expected stage
+(``STAGE_CODES``: ``U0 O0``, ``U0 O1 O0 U1``, then the trefoil by `knot.py`). A failed step 2
+or 3 is retried from the same pre-step state with a jittered style (``max_attempts`` tries); if
+it still fails, the expert starts over from the start rope and lays a new, jittered loop (at most
+``max_restarts`` loops). Only the accepted tries are recorded. The expert's observation is the
+simulator's rope nodes: it is the demonstrator, not a perception system, so demos must be
+correct rather than realistic.
+
+Measured on 40 rotated, curved step-1 loops: a pick 2.5 cm beyond the tail tip (the notes'
+value) and a drag target tied to the pick gave 25-55 % step-2 success: rotated ropes lay
+different loops than the straight one along x (the straight rope rotated by 172 degrees fails
+where it succeeds at 0 degrees), often with the tail right next to the loop's lower side. A
+5 cm offset, a 12 cm drag and the target tied to the tail tip give ~75 % per try; retries and
+new loops take whole demos to the rates printed by bench/expert.py.
+
+Shape suffixes: k = rope nodes, t = waypoints, 2/3 = xy/xyz.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.seeds import generator
+from knotlab.core.world.knot import analyse_knot
+from knotlab.core.world.knot_sequence import pick_place, single_gripper_trajectory
+from knotlab.core.world.rope import resample_by_arc_length, segment_crossings_xy
+from knotlab.core.world.stages import Stage, stage_of_code
+from knotlab.core.world.trajectory import GripperTrajectory
+
+N_STEPS = 3
+MIN_PICK_HEIGHT = 0.015  # step 2 picks the loop at least this far from the tail line
+# Gauss code of the open rope expected after each step (mirroring keeps the O/U sequence).
+STAGE_CODES: tuple[str, ...] = ("U0 O0", "U0 O1 O0 U1", "U0 O1 U2 O0 U1 O2")
+LAY_HEIGHT = 0.55  # m: the end is lifted this high so the rope hangs and is laid like a pen
+
+
+@dataclass(frozen=True)
+class ExpertStyle:
+    """How one demonstration ties the knot: the expert's free choices (metres unless stated)."""
+
+    chirality: int = 1  # +1: loop on the left of the standing part; -1: mirror variant
+    loop_radius: float = 0.08
+    loop_start: float = 0.47  # arc length from end A where the loop is laid
+    tail_drop: float = 0.06  # tail runs this far beyond the standing part
+    tail_run: float = 0.12  # length of the laid tail run
+    end_grasp: float = 0.0125  # grasp distance from the rope tip (steps 1 and 3)
+    grasp_gx: float = 0.05  # step 2: pick this far beyond the tail end along the tail
+    drag_dy: float = 0.12  # step 2: drag to this far beyond the tail end (across the tail)
+    lift2: float = 0.04  # step 2 lift (a high lift drags the tail along)
+    pull_dx: float = 0.20  # step 3 pull along the tail direction
+    pull_dy: float = 0.05  # step 3 pull away from the loop
+    lift3: float = 0.05
+    speed: float = 0.2  # m/s for steps 2 and 3
+    lay_speed: float = 0.3  # m/s for step 1
+
+    def __post_init__(self) -> None:
+        if self.chirality not in (1, -1):
+            raise InvalidInputError(f"ExpertStyle.chirality must be +1 or -1, got {self.chirality}")
+        for name in ("loop_radius", "loop_start", "lift2", "lift3", "speed", "lay_speed"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"ExpertStyle.{name} must be positive, got {value}")
+        if not 0.0 <= self.end_grasp <= 0.1:
+            raise InvalidInputError(
+                f"ExpertStyle.end_grasp must be in [0, 0.1], got {self.end_grasp}"
+            )
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able dict (stored in demo metadata)."""
+        return {k: (int(v) if k == "chirality" else float(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExpertStyle:
+        """Inverse of :meth:`to_dict`."""
+        return cls(**d)
+
+
+def sample_style(rng: np.random.Generator, mirror_prob: float = 0.5) -> ExpertStyle:
+    """A moderately varied style (narrow spread: wide spread made demos marginal, see notes).
+
+    About a third of the demos grasp the rope ends within 2 cm of the tip (brittle under
+    transfer: a small warp error slips off the end).
+    """
+    brittle = rng.uniform() < 0.35
+    end_grasp = rng.uniform(0.005, 0.02) if brittle else rng.uniform(0.02, 0.045)
+    return ExpertStyle(
+        chirality=-1 if rng.uniform() < mirror_prob else 1,
+        loop_radius=float(rng.uniform(0.075, 0.085)),
+        loop_start=float(rng.uniform(0.46, 0.48)),
+        tail_drop=float(rng.uniform(0.055, 0.065)),
+        tail_run=float(rng.uniform(0.11, 0.13)),
+        end_grasp=float(end_grasp),
+        grasp_gx=float(rng.uniform(0.04, 0.06)),
+        drag_dy=float(rng.uniform(0.11, 0.13)),
+        lift2=float(rng.uniform(0.035, 0.045)),
+        pull_dx=float(rng.uniform(0.17, 0.22)),
+        pull_dy=float(rng.uniform(0.03, 0.07)),
+    )
+
+
+def _jitter(style: ExpertStyle, rng: np.random.Generator, step: int) -> ExpertStyle:
+    """A nearby style for a retry of ``step`` (same chirality and grasp choices)."""
+    if step == 0:  # a new loop: size, place and tail position
+        return replace(
+            style,
+            loop_radius=float(np.clip(style.loop_radius + rng.uniform(-0.006, 0.006), 0.07, 0.09)),
+            loop_start=float(style.loop_start + rng.uniform(-0.015, 0.015)),
+            tail_drop=float(style.tail_drop + rng.uniform(-0.01, 0.01)),
+        )
+    if step == 1:
+        return replace(
+            style,
+            grasp_gx=float(np.clip(style.grasp_gx + rng.uniform(-0.02, 0.02), 0.02, 0.08)),
+            drag_dy=float(np.clip(style.drag_dy + rng.uniform(-0.02, 0.03), 0.09, 0.16)),
+        )
+    return replace(
+        style,
+        pull_dx=float(style.pull_dx + rng.uniform(-0.03, 0.03)),
+        pull_dy=float(style.pull_dy + rng.uniform(-0.03, 0.03)),
+    )
+
+
+# ---------------------------------------------------------------------- start ropes
+def sample_start_rope(
+    rng: np.random.Generator,
+    bend_amplitude: float = 0.03,
+    n_nodes: int = 41,
+    length: float = 1.0,
+    height: float = 0.01,
+    max_rotation: float = math.pi,
+    max_translation: float = 0.15,
+) -> np.ndarray:
+    """A gently curved rope on the table (n_nodes, 3), arc length ``length``.
+
+    y(x) = sum_{k=1..3} a_k / k sin(k pi u + phi_k), u in [0, 1], a_k ~ U(-amp, amp),
+    phi_k ~ U(0, 2 pi); then a rotation by U(-max_rotation, max_rotation) about z and a translation
+    by U(-max_translation, max_translation) in x and y.
+    """
+    if bend_amplitude < 0 or n_nodes < 3 or length <= 0:
+        raise InvalidInputError("need bend_amplitude >= 0, n_nodes >= 3 and length > 0")
+    a_k = rng.uniform(-bend_amplitude, bend_amplitude, size=3)
+    phi_k = rng.uniform(0.0, 2 * math.pi, size=3)
+    u = np.linspace(0.0, 1.0, 401)
+    y = sum(a_k[k] / (k + 1) * np.sin((k + 1) * math.pi * u + phi_k[k]) for k in range(3))
+    y = y - y.mean()
+    xy = np.stack([u - 0.5, y], axis=1)
+    arc = np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()
+    xy *= length / arc  # exact arc length (uniform scaling keeps the shape)
+    theta = rng.uniform(-max_rotation, max_rotation)
+    rot = np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
+    shift = rng.uniform(-max_translation, max_translation, size=2)
+    xy = xy @ rot.T + shift
+    nodes = np.column_stack([xy, np.full(len(xy), height)])
+    return resample_by_arc_length(nodes, n_nodes)
+
+
+# ---------------------------------------------------------------------- geometry helpers
+def _arc(nodes_k3: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
+
+
+def _point_at(nodes_k3: np.ndarray, s: float) -> np.ndarray:
+    """Point at arc length s along the polyline (clamped to the ends)."""
+    arc = _arc(nodes_k3)
+    return np.array([np.interp(s, arc, nodes_k3[:, d]) for d in range(3)])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    if n < 1e-9:
+        raise InvalidInputError("degenerate direction in the observed rope")
+    return v / n
+
+
+def _perp(v_2: np.ndarray) -> np.ndarray:
+    return np.array([-v_2[1], v_2[0]])
+
+
+def _end_grasp_point(nodes_k3: np.ndarray, offset: float) -> np.ndarray:
+    """Point ``offset`` metres from end B's tip along the rope, at link-centre height."""
+    total = _arc(nodes_k3)[-1]
+    return _point_at(nodes_k3, total - offset)
+
+
+# ---------------------------------------------------------------------- the three steps
+@dataclass(frozen=True)
+class LoopFrame:
+    """The frame of the laid loop, measured after step 1: tail end, tail direction, normal."""
+
+    tail_end_2: np.ndarray
+    along_2: np.ndarray  # tail direction d (towards the tail tip)
+    normal_2: np.ndarray  # n: from the tail towards the loop centre, perpendicular to d
+    loop_nodes: tuple[int, int]  # node range of the loop (first, second crossing visit)
+
+
+def plan_loop(nodes_k3: np.ndarray, style: ExpertStyle) -> GripperTrajectory:
+    """Step 1: lift end B high above the loop start and lay a loop like a pen."""
+    s0 = style.loop_start
+    origin = _point_at(nodes_k3, s0)[:2]
+    ex = _unit(origin - _point_at(nodes_k3, s0 - 0.20)[:2])
+    ey = style.chirality * _perp(ex)
+
+    def world(local_n2: np.ndarray) -> np.ndarray:
+        return origin + local_n2[:, :1] * ex + local_n2[:, 1:2] * ey
+
+    r = style.loop_radius
+    centre = np.array([-0.02, r])
+    ang = np.linspace(-0.5 * np.pi, np.pi, 19)  # counter-clockwise in the local frame, 270 deg
+    loop = centre + r * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    cx = centre[0] - r  # x of the descending leg that crosses the standing part
+    tail = np.array([[cx, -style.tail_drop], [cx + style.tail_run, -style.tail_drop]])
+    path = world(np.vstack([[0.0, 0.0], loop, tail]))
+    legs = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    frac = np.concatenate([[0.0], np.cumsum(legs)]) / legs.sum()
+    bottom = 0.02
+    path_z = LAY_HEIGHT + (bottom - LAY_HEIGHT) * frac
+    laying = np.column_stack([path, path_z])
+    pick = _end_grasp_point(nodes_k3, style.end_grasp)
+    back = _point_at(nodes_k3, _arc(nodes_k3)[-1] - style.end_grasp - 0.04)
+    lift = np.array([back[0], back[1], 0.10])
+    points = np.vstack([pick, lift, laying, laying[-1:]])
+    closed = np.ones(points.shape[0], dtype=bool)
+    closed[-1] = False
+    speeds = np.full(points.shape[0], style.lay_speed)
+    return single_gripper_trajectory(points, closed, speeds)
+
+
+def loop_frame(nodes_k3: np.ndarray) -> LoopFrame | None:
+    """Measure the loop after step 1 (one crossing expected); None if there is no single loop."""
+    xy = nodes_k3[:, :2]
+    i, j, t, s = segment_crossings_xy(xy[:-1], xy[1:], cyclic=False)
+    if i.size != 1:
+        return None
+    first, second = float(i[0] + t[0]), float(j[0] + s[0])
+    tip = xy[-1]
+    arc = _arc(nodes_k3)
+    base = _point_at(nodes_k3, arc[-1] - 0.08)[:2]
+    along = _unit(tip - base)
+    lo, hi = math.ceil(first), math.floor(second)
+    if hi - lo < 3:
+        return None
+    centre = xy[lo : hi + 1].mean(axis=0)
+    normal = _perp(along)
+    if float(np.dot(centre - tip, normal)) < 0:
+        normal = -normal
+    return LoopFrame(tip, along, normal, (lo, hi))
+
+
+def plan_over_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -> GripperTrajectory:
+    """Step 2: pick the loop's earlier side beyond the tail end and drag it across the tail."""
+    lo, hi = frame.loop_nodes
+    mid = (lo + hi) // 2
+    side = nodes_k3[lo : mid + 1]  # the loop's earlier half, in rope order
+    rel = side[:, :2] - frame.tail_end_2
+    u = rel @ frame.along_2  # along the tail
+    v = rel @ frame.normal_2  # towards the loop
+    target = style.grasp_gx
+    above = v > MIN_PICK_HEIGHT
+    best = None
+    for a in range(len(side) - 1):
+        if not (above[a] and above[a + 1]) or u[a] == u[a + 1]:
+            continue
+        if (u[a] - target) * (u[a + 1] - target) <= 0:
+            w = (target - u[a]) / (u[a + 1] - u[a])
+            vv = v[a] + w * (v[a + 1] - v[a])
+            if best is None or vv < best[0]:
+                best = (vv, side[a] + w * (side[a + 1] - side[a]))
+    if best is not None:
+        pick = best[1]
+    else:  # the loop ends short of the target: take its farthest point along the tail
+        cand = np.where(above, u, -np.inf)
+        pick = side[int(np.argmax(cand))]
+    # The drag target is fixed relative to the tail end: the loop's later arm must come back
+    # up beyond the tail tip, or both arms of the dragged side cross the tail.
+    place = frame.tail_end_2 + target * frame.along_2 - style.drag_dy * frame.normal_2
+    return pick_place(pick, style.lift2, place, 0.02, style.speed)
+
+
+def plan_pull_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -> GripperTrajectory:
+    """Step 3: pick the tail near its tip and pull it out along the tail, away from the loop."""
+    pick = _end_grasp_point(nodes_k3, style.end_grasp)
+    place = pick[:2] + style.pull_dx * frame.along_2 - style.pull_dy * frame.normal_2
+    return pick_place(pick, style.lift3, place, 0.02, style.speed)
+
+
+# ---------------------------------------------------------------------- running a demo
+@dataclass(frozen=True, eq=False)
+class StepRecord:
+    """One executed (accepted) step: the state it started from and what it did."""
+
+    step_index: int
+    pre_nodes_k3: np.ndarray
+    trajectory: GripperTrajectory
+    post_nodes_k3: np.ndarray
+    code: str  # Gauss code after the step
+    stage_ok: bool
+    attempts: int
+    style: ExpertStyle
+
+
+@dataclass(frozen=True, eq=False)
+class DemoRun:
+    """The outcome of one expert demonstration from a start rope."""
+
+    start_nodes_k3: np.ndarray
+    style: ExpertStyle
+    steps: list[StepRecord] = field(default_factory=list)
+    knotted: bool = False
+    failed_step: int | None = None  # step whose stage stayed wrong after all retries
+    wall_time: float = 0.0
+    restarts: int = 0  # new loops laid after a failed later step
+    failures_by_step: tuple[int, ...] = (0, 0, 0)  # rejected tries of each step
+
+
+def _plan(step: int, nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame | None):
+    if step == 0:
+        return plan_loop(nodes_k3, style)
+    if frame is None:
+        raise InvalidInputError("steps 2 and 3 need the loop frame from step 1")
+    if step == 1:
+        return plan_over_tail(nodes_k3, style, frame)
+    return plan_pull_tail(nodes_k3, style, frame)
+
+
+def _try_step(world, step, pre, style, frame):
+    """Execute one planned step from ``reset(pre)``; (post, code, ok, frame) or None."""
+    world.reset(pre)
+    try:
+        traj = _plan(step, pre, style, frame)
+    except InvalidInputError:
+        return None
+    result = world.execute(traj)
+    post = world.rope_nodes()
+    if not result.ok or not np.all(np.isfinite(post)):
+        return None
+    analysis = analyse_knot(post)
+    final = step == N_STEPS - 1
+    # The same canonical stage test as the oracle and the labeller (a code read from the other
+    # end of the rope is the same state).
+    stage = stage_of_code(analysis.gauss_code, analysis.is_overhand)
+    good = stage is Stage.KNOT if final else stage == Stage(step + 1)
+    new_frame = frame
+    if step == 0 and good:
+        new_frame = loop_frame(post)
+        good = new_frame is not None
+    return traj, post, analysis.gauss_code, good, new_frame
+
+
+def run_expert(
+    world,
+    start_nodes_k3: np.ndarray,
+    style: ExpertStyle,
+    seed: int = 0,
+    max_attempts: int = 3,
+    max_restarts: int = 8,
+) -> DemoRun:
+    """Tie a knot from ``start_nodes_k3``; every step starts from ``world.reset(pre_nodes)``.
+
+    Resetting from the read-back rope nodes before every step (velocities zero, the rope at rest
+    after the previous step's settle) makes each recorded step exactly replayable:
+    ``world.reset(step.pre_nodes_k3); world.execute(step.trajectory)`` gives ``post_nodes_k3``
+    bit for bit, because the simulator rebuilds its world from that plain state.
+
+    Checks: after each step the crossing code must be the expected stage. Steps 2 and 3 are
+    retried from the same pre-step state with a jittered style (``max_attempts`` tries each);
+    if they still fail the expert starts over from the start rope with a new loop (at most
+    ``max_restarts`` loops), then abandons the demo. Jitters are seeded by ``seed``.
+    """
+    wall0 = time.perf_counter()
+    rng = generator(seed, 7)
+    world.reset(start_nodes_k3)
+    start = world.rope_nodes()
+    failed: int | None = None
+    records: list[StepRecord] = []
+    fails_by_step = [0] * N_STEPS
+    for restart in range(max_restarts):
+        loop_style = style if restart == 0 else _jitter(style, rng, 0)
+        records = []
+        frame: LoopFrame | None = None
+        nodes = start
+        failed = None
+        for step in range(N_STEPS):
+            tries = 1 if step == 0 else max_attempts
+            accepted = None
+            for attempt in range(1, tries + 1):
+                step_style = loop_style if attempt == 1 else _jitter(loop_style, rng, step)
+                out = _try_step(world, step, nodes, step_style, frame)
+                if out is not None and out[3]:
+                    traj, post, code, _, frame = out
+                    accepted = StepRecord(step, nodes, traj, post, code, True, attempt, step_style)
+                    break
+                fails_by_step[step] += 1
+            if accepted is None:
+                failed = step
+                break
+            records.append(accepted)
+            nodes = accepted.post_nodes_k3
+        if failed is None:
+            break
+    return DemoRun(
+        start_nodes_k3=np.asarray(start_nodes_k3, dtype=float),
+        style=style,
+        steps=records,
+        knotted=failed is None,
+        failed_step=failed,
+        wall_time=time.perf_counter() - wall0,
+        restarts=restart,
+        failures_by_step=tuple(fails_by_step),
+    )

@@ -1,0 +1,1 @@
+"""Running many episodes: one episode, the resumable benchmark, the oracle labeller, pools."""

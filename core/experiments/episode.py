@@ -1,0 +1,242 @@
+"""Run one knot-tying episode (at most 5 steps) with any policy, recording every step.
+
+A failed registration, a misgrasp, a simulation blow-up or a numerical error inside a step is a
+recorded step outcome, never an exception that would end a long benchmark: the episode ends as a
+failure with a ``failure_kind`` and the error message kept in the record.
+Shape suffixes: n = cloud points, k = rope nodes, a = demos.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from knotlab.core.errors import KnotlabError
+from knotlab.core.failures import FailureKind
+from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
+from knotlab.core.seeds import derive_seed
+from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.selection.policies import Policy, StepContext
+from knotlab.core.world.trajectory import GripperTrajectory
+
+log = logging.getLogger(__name__)
+
+MAX_STEPS = 5
+FAILURE_KINDS: tuple[str, ...] = tuple(k.value for k in FailureKind)
+_NUMERIC_ERRORS = (KnotlabError, FloatingPointError, np.linalg.LinAlgError, ValueError)
+
+
+@dataclass
+class StepRecord:
+    """One decision and its execution."""
+
+    step_index: int
+    cloud_n3: np.ndarray
+    nodes_before_k3: np.ndarray
+    chosen: int
+    chosen_key: str
+    scores_a: np.ndarray
+    nn_cost_a: np.ndarray
+    trajectory: GripperTrajectory | None
+    outcome: str  # "knot", "progressed", or the FailureKind value of a failed step
+    knot: bool
+    stage: int
+    gauss_code: str
+    failure: str | None
+    timings: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    """One episode's row in a results file (``outcomes.jsonl``): what Table I is counted from."""
+
+    task_id: str
+    policy: str
+    success: bool
+    n_steps: int
+    failure_kind: FailureKind | None
+    error: str | None
+    wall_s: float
+    decision_s: tuple[float, ...] = ()
+    chosen: tuple[str, ...] = ()
+    outcomes: tuple[str, ...] = ()
+    stages: tuple[int, ...] = ()
+
+    @classmethod
+    def errored(cls, task_id: str, policy: str, message: str, wall_s: float = 0.0):
+        """The row of an episode that crashed before it could record a step."""
+        return cls(task_id, policy, False, 0, FailureKind.ERROR, message, wall_s)
+
+    def to_dict(self) -> dict:
+        """JSON-able row (failure kind as its value string, lists for sequences)."""
+        return {
+            "task_id": self.task_id,
+            "policy": self.policy,
+            "success": self.success,
+            "n_steps": self.n_steps,
+            "failure_kind": None if self.failure_kind is None else self.failure_kind.value,
+            "error": self.error,
+            "wall_s": round(self.wall_s, 4),
+            "decision_s": [round(t, 4) for t in self.decision_s],
+            "chosen": list(self.chosen),
+            "outcomes": list(self.outcomes),
+            "stages": [int(s) for s in self.stages],
+        }
+
+
+@dataclass
+class EpisodeRecord:
+    """A whole episode: success, steps, failure kind and time."""
+
+    task_id: str
+    policy: str
+    success: bool
+    steps: list[StepRecord]
+    failure_kind: FailureKind | None
+    error: str | None = None
+    wall_s: float = 0.0
+
+    @property
+    def n_steps(self) -> int:
+        """Steps executed."""
+        return len(self.steps)
+
+    def decision_times(self) -> list[float]:
+        """Seconds spent choosing (scan + features + policy) at each step."""
+        return [s.timings.get("decide_s", float("nan")) for s in self.steps]
+
+    def outcome(self) -> EpisodeOutcome:
+        """The episode's results-file row."""
+        return EpisodeOutcome(
+            self.task_id,
+            self.policy,
+            self.success,
+            self.n_steps,
+            self.failure_kind,
+            self.error,
+            self.wall_s,
+            tuple(self.decision_times()),
+            tuple(s.chosen_key for s in self.steps),
+            tuple(s.outcome for s in self.steps),
+            tuple(int(s.stage) for s in self.steps),
+        )
+
+    def summary(self) -> dict:
+        """JSON-able per-task outcome for results files (`EpisodeOutcome.to_dict`)."""
+        return self.outcome().to_dict()
+
+
+def _step_seed(seed: int, step: int) -> int:
+    return derive_seed(seed, step)
+
+
+def _classify(outcome: ActionOutcome) -> str:
+    """The step's outcome word: knot, progressed, or the failure kind set by planner or sim."""
+    if outcome.knot:
+        return "knot"
+    kind = outcome.failure_kind
+    return "progressed" if kind is None else kind.value
+
+
+def run_episode(
+    world,
+    start_nodes_k3: np.ndarray,
+    policy: Policy,
+    featurizer: LibraryFeaturizer,
+    transferer: DemoTransferer,
+    *,
+    task_id: str = "task",
+    seed: int = 0,
+    max_steps: int = MAX_STEPS,
+    observe_noise: float = 0.0,
+) -> EpisodeRecord:
+    """Reset the world to the start rope and act with ``policy`` until a knot or ``max_steps``."""
+    t_episode = time.perf_counter()
+    steps: list[StepRecord] = []
+    failure_kind: FailureKind | None = FailureKind.NO_KNOT
+    error: str | None = None
+    try:
+        world.reset(start_nodes_k3)
+    except _NUMERIC_ERRORS as exc:  # a bad start state is this episode's failure, not the run's
+        log.warning("task %s: cannot reset to its start state: %s", task_id, exc)
+        return EpisodeRecord(
+            task_id,
+            policy.name,
+            False,
+            [],
+            FailureKind.ERROR,
+            f"{type(exc).__name__}: {exc}",
+            time.perf_counter() - t_episode,
+        )
+    keys = featurizer.library.keys
+    for step in range(max_steps):
+        nodes_before = world.rope_nodes()
+        try:
+            t0 = time.perf_counter()
+            cloud = featurizer.observe(world, noise=observe_noise, seed=_step_seed(seed, step))
+            scan = featurizer.scan(cloud)
+            t_scan = time.perf_counter() - t0
+            ctx = StepContext(world, cloud, scan, featurizer, transferer, step, max_steps - step)
+            decision = policy.choose(ctx)
+            t_decide = time.perf_counter() - t0
+            if decision.outcome is not None:
+                world.restore(decision.outcome.snapshot_after)
+                outcome = decision.outcome
+            else:
+                outcome = apply_demo(world, transferer, cloud, decision.action)
+        except _NUMERIC_ERRORS as exc:
+            log.warning("task %s step %d: %s: %s", task_id, step, type(exc).__name__, exc)
+            failure_kind, error = FailureKind.ERROR, f"{type(exc).__name__}: {exc}"
+            break
+        kind = _classify(outcome)
+        steps.append(
+            StepRecord(
+                step_index=step,
+                cloud_n3=cloud,
+                nodes_before_k3=nodes_before,
+                chosen=decision.action,
+                chosen_key=keys[decision.action],
+                scores_a=decision.scores_a,
+                nn_cost_a=np.asarray(scan.nn_cost_a),
+                trajectory=outcome.plan.trajectory,
+                outcome=kind,
+                knot=outcome.knot,
+                stage=outcome.stage,
+                gauss_code=outcome.gauss_code,
+                failure=outcome.failure,
+                timings={
+                    "scan_s": t_scan,
+                    "decide_s": t_decide,
+                    "step_s": time.perf_counter() - t0,
+                    **outcome.plan.timings,
+                },
+                info=decision.info,
+            )
+        )
+        if outcome.knot:
+            failure_kind = None
+            break
+        step_kind = outcome.failure_kind
+        if step_kind is not None and step_kind.ends_episode:
+            failure_kind = step_kind
+            break
+    success = bool(steps) and steps[-1].knot
+    if (
+        not success
+        and failure_kind is FailureKind.NO_KNOT
+        and any(s.outcome == FailureKind.MISGRASP for s in steps)
+    ):
+        failure_kind = FailureKind.MISGRASP  # ran out of steps after at least one empty grasp
+    return EpisodeRecord(
+        task_id,
+        policy.name,
+        success,
+        steps,
+        None if success else failure_kind,
+        error,
+        time.perf_counter() - t_episode,
+    )

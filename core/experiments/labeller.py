@@ -1,0 +1,216 @@
+"""Expert labels without a human: an oracle that plays the expert as the original labelling did.
+
+lfd_facts section 11: the expert was shown candidates in registration-cost order and accepted the
+first that looked like progress. Our oracle makes "looks like progress" precise with a bounded
+search in simulation: in each state it tries the ``candidates`` lowest-cost demos in cost order and
+accepts the first whose outcome still lets a knot be tied within the remaining steps, decided by
+the same search from the outcome (depth-first, at most ``sim_budget`` simulated actions per task).
+
+- The search first follows outcomes that advance the topological stage (loop, loop over tail,
+  knot); outcomes that keep the stage are tried only while the remaining steps leave slack, and
+  regressions, misgrasps and blow-ups are rejected (a misgrasp was skipped automatically by the
+  original labelling too).
+- A rejected outcome whose own search was exhausted (every candidate tried, not cut off by the
+  budget) cannot lead to a knot in time: it is recorded as a dead-end state.
+- Tasks the search cannot solve produce no steps (the original discarded them), but any dead ends
+  found on the way are kept: they are labels too.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from knotlab.core.parallel import PerProcess
+from knotlab.core.registration.planner import DemoTransferer, apply_demo
+from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
+from knotlab.core.world.stages import Stage, rope_stage
+
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import RopeWorld
+
+
+@dataclass(frozen=True)
+class OracleParams:
+    """Settings of the oracle labeller's bounded search."""
+
+    candidates: int = 10  # lowest-cost demos tried per state (the original's MAX_ACTIONS_TO_TRY)
+    max_steps: int = 5
+    sim_budget: int = 60  # simulated actions per task, all branches together
+
+
+@dataclass
+class OracleResult:
+    """One labelled task: the execution (maybe without steps), and what the search cost."""
+
+    execution: LabelledExecution
+    simulations: int
+    wall_s: float
+    solved: bool
+    budget_exhausted: bool
+
+
+@dataclass
+class _Search:
+    world: RopeWorld
+    featurizer: LibraryFeaturizer
+    transferer: DemoTransferer
+    params: OracleParams
+    sims: int = 0
+    exhausted: bool = False
+    dead_ends: list[DeadEndState] = field(default_factory=list)
+
+    def solve(self, snapshot, cloud_n3, nodes_k3, stage: int, steps_left: int):
+        """Steps to a knot within ``steps_left`` from this state, or None; and if exhaustive."""
+        scan = self.featurizer.scan(cloud_n3)
+        cost = np.where(scan.ok_a, scan.nn_cost_a, np.inf)
+        order = [int(a) for a in np.argsort(cost, kind="stable")[: self.params.candidates]]
+        order = [a for a in order if np.isfinite(cost[a])]
+        keys = self.featurizer.library.keys
+        shown = tuple(keys[a] for a in order)
+        shown_scores = np.array([cost[a] for a in order])
+        deferred = []  # outcomes that kept the stage: tried only if nothing advances
+        complete = True
+        for a in order:
+            if self.sims >= self.params.sim_budget:
+                self.exhausted = True
+                return None, False
+            self.world.restore(snapshot)
+            outcome = apply_demo(self.world, self.transferer, cloud_n3, a)
+            self.sims += 1
+
+            def step(label: str, a: int = a) -> LabelledStep:
+                return LabelledStep(0, cloud_n3, keys[a], label, nodes_k3, shown, shown_scores)
+
+            if outcome.knot:
+                return [step("knot")], True
+            if outcome.failure is not None:
+                continue
+            if outcome.stage > stage and steps_left > 1:
+                result, exhaustive = self._descend(outcome, steps_left)
+                if result is not None:
+                    return [step("progressed"), *result], True
+                complete &= exhaustive
+            elif outcome.stage == stage and steps_left - 1 > Stage.KNOT - stage:
+                deferred.append((a, outcome))
+        for a, outcome in deferred:
+            result, exhaustive = self._descend(outcome, steps_left)
+            if result is not None:
+                step_ = LabelledStep(
+                    0, cloud_n3, keys[a], "progressed", nodes_k3, shown, shown_scores
+                )
+                return [step_, *result], True
+            complete &= exhaustive
+        return None, complete
+
+    def _descend(self, outcome, steps_left: int):
+        self.world.restore(outcome.snapshot_after)
+        child_cloud = self.featurizer.observe(self.world)
+        nodes = outcome.nodes_after_k3
+        result, exhaustive = self.solve(
+            outcome.snapshot_after, child_cloud, nodes, outcome.stage, steps_left - 1
+        )
+        if result is None and exhaustive:
+            self.dead_ends.append(DeadEndState(child_cloud, nodes))
+        return result, exhaustive
+
+
+def label_task(
+    world,
+    start_nodes_k3: np.ndarray,
+    featurizer: LibraryFeaturizer,
+    transferer: DemoTransferer,
+    *,
+    task_id: str,
+    params: OracleParams = OracleParams(),
+) -> OracleResult:
+    """Label one start state with the oracle expert; returns the execution it produced."""
+    t0 = time.perf_counter()
+    world.reset(start_nodes_k3)
+    snapshot = world.snapshot()
+    cloud = featurizer.observe(world)
+    nodes = world.rope_nodes()
+    stage, _ = rope_stage(nodes)
+    search = _Search(world, featurizer, transferer, params)
+    steps, _ = search.solve(snapshot, cloud, nodes, stage, params.max_steps)
+    steps = steps or []
+    labelled = tuple(
+        LabelledStep(
+            i,
+            s.cloud_n3,
+            s.chosen_demo,
+            s.outcome,
+            s.rope_nodes_k3,
+            s.candidates,
+            s.candidate_scores_c,
+        )
+        for i, s in enumerate(steps)
+    )
+    execution = LabelledExecution(
+        execution_id=f"oracle-{task_id}",
+        source="oracle",
+        labeller="oracle",
+        steps=labelled,
+        ended_in_knot=bool(labelled) and labelled[-1].outcome == "knot",
+        dead_ends=tuple(search.dead_ends),
+        task_id=task_id,
+        library_hash=featurizer.library_hash,
+        metadata={
+            "simulations": search.sims,
+            "candidates": params.candidates,
+            "sim_budget": params.sim_budget,
+            "budget_exhausted": search.exhausted,
+        },
+    )
+    return OracleResult(
+        execution, search.sims, time.perf_counter() - t0, bool(labelled), search.exhausted
+    )
+
+
+@dataclass(frozen=True)
+class _LabelJob:
+    library_path: str
+    task_id: str
+    start_nodes_k3: np.ndarray
+    params: OracleParams
+
+
+def _build_tools(library_path: str) -> tuple:
+    """The world, featurizer and transferer for one library (built once per worker process)."""
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.world.sim import RopeWorld
+
+    library = DemoLibrary.load(library_path)
+    return (RopeWorld(), LibraryFeaturizer(library), DemoTransferer(library))
+
+
+_TOOLS = PerProcess(_build_tools)  # per process: library path -> (world, featurizer, transferer)
+
+
+def _label_job(job: _LabelJob) -> OracleResult:
+    world, featurizer, transferer = _TOOLS.get(job.library_path)
+    return label_task(
+        world, job.start_nodes_k3, featurizer, transferer, task_id=job.task_id, params=job.params
+    )
+
+
+def oracle_label_tasks(
+    library_path: str,
+    tasks,
+    *,
+    params: OracleParams = OracleParams(),
+    workers: int | None = None,
+    progress: bool = True,
+):
+    """Yield an OracleResult per task (in completion order), labelling over local processes."""
+    from knotlab.core.parallel import imap_processes
+
+    jobs = [_LabelJob(str(library_path), t.task_id, t.start_nodes_k3, params) for t in tasks]
+    for _, result in imap_processes(
+        _label_job, jobs, workers=workers, desc="oracle labelling", progress=progress
+    ):
+        yield result

@@ -1,0 +1,342 @@
+"""The compiled TPS-RPM annealing kernel (numba) and its scalar constants.
+
+See `knotlab.core.registration.rpm` for the algorithm; this module holds only the machine
+code and what it reads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from knotlab.core.registration.params import MAX_EXPONENT, RegistrationParams
+
+# Compilation: `cache=True` writes the machine code next to this file (core/__pycache__/*.nbi,
+# *.nbc); numba falls back to NUMBA_CACHE_DIR or ~/.cache when that is not writable. A cold
+# compile of both dtypes takes tens of seconds; a warm start loads in about a second.
+# Every array a kernel reads is in the RPM dtype (float32 for SCAN, float64 for EXACT), and so
+# are the constants (`kernel_constants`), so float32 arithmetic never silently widens to float64.
+
+_EXP_TAYLOR = tuple(1.0 / math.factorial(q) for q in range(11))
+
+
+def kernel_constants(dt: np.dtype, params: RegistrationParams) -> np.ndarray:
+    """The kernel's scalars in the RPM dtype; see `_K_*` for the slots."""
+    ln2 = math.log(2.0)
+    ln2_hi = 0.693359375  # 355/512: k * ln2_hi is exact in float32 for the k < 128 used
+    c = [1.0 / ln2, 0.5, ln2_hi, ln2 - ln2_hi, MAX_EXPONENT, *_EXP_TAYLOR]
+    c += [params.outlier_prior, params.outlier_frac, params.outlier_cutoff, 1.0, 0.0, 1e-30]
+    return np.array(c, dtype=dt)
+
+
+_K_PRIOR, _K_FRAC, _K_CUTOFF, _K_ONE, _K_ZERO, _K_TINY = range(16, 22)
+TARGET_RULES = {"batch": 0, "gpu": 1, "weighted": 2}
+# stop_after: run the phases up to this one in every iteration (the benchmark's phase split)
+PHASES = ("affinity", "sinkhorn", "targets", "tps fit")
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no cover - compiled
+    """p[i, j] = exp(-min(s[j], cap)) for j < m, s >= 0; 2^-k built in `bits` (a view: bits_f)."""
+    log2e, half, ln2_hi, ln2_lo, cap = cst[0], cst[1], cst[2], cst[3], cst[4]
+    c0, c1, c2, c3, c4, c5 = cst[5], cst[6], cst[7], cst[8], cst[9], cst[10]
+    c6, c7, c8, c9, c10 = cst[11], cst[12], cst[13], cst[14], cst[15]
+    for j in range(m):
+        v = min(s[j], cap)
+        kf = np.floor(v * log2e + half)
+        r = kf * ln2_lo - (v - kf * ln2_hi)  # -v = -k ln2 + r, |r| <= ln2 / 2
+        poly = c10
+        poly = poly * r + c9
+        poly = poly * r + c8
+        poly = poly * r + c7
+        poly = poly * r + c6
+        poly = poly * r + c5
+        poly = poly * r + c4
+        poly = poly * r + c3
+        poly = poly * r + c2
+        poly = poly * r + c1
+        poly = poly * r + c0
+        s[j] = poly
+        bits[j] = (e_bias - int(kf)) << e_shift  # the IEEE bit pattern of 2^-k
+    for j in range(m):
+        p[i, j] = s[j] * bits_f[j]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def rpm_kernel(
+    idx,
+    x_an3,
+    n_a,
+    g_ank,
+    gt_akn,
+    mu_ak,
+    h_ak3,
+    y_m3,
+    g_y,
+    gt_y,
+    mu_y,
+    h_y,
+    lam_i,
+    inv2t_i,
+    cst,
+    bits,
+    bits_f,
+    e_bias,
+    e_shift,
+    a_out,
+    b_out_b,
+    corner_b,
+    rule,
+    sinkhorn_iters,
+    stop_after,
+    e_f,
+    e_g,
+    fx_out,
+    gy_out,
+    xhat_out,
+    yhat_out,
+    wf_out,
+    wg_out,
+    mf_out,
+    mg_out,
+    corr,
+    failed,
+):  # pragma: no cover - compiled
+    """Bidirectional TPS-RPM for every demo b of a chunk against the scene (see `rpm_batch`)."""
+    dt_one = cst[_K_ONE]
+    zero = cst[_K_ZERO]
+    prior, cutoff, tiny = cst[_K_PRIOR], cst[_K_CUTOFF], cst[_K_TINY]
+    m = y_m3.shape[0]
+    ky = gt_y.shape[0]
+    nb = idx.shape[0]
+    n_max = x_an3.shape[1]
+    ys = np.empty((4, m), cst.dtype)  # scene SoA, row 3 = 1
+    for j in range(m):
+        for d in range(3):
+            ys[d, j] = y_m3[j, d]
+        ys[3, j] = dt_one
+    # per-demo scratch, sized for the largest demo
+    xs = np.empty((3, n_max), cst.dtype)
+    fx = np.empty((3, n_max), cst.dtype)
+    gy = np.empty((3, m), cst.dtype)
+    p = np.empty((n_max, m), cst.dtype)
+    pt = np.empty((m, n_max), cst.dtype)
+    srow = np.empty(m, cst.dtype)
+    rd = np.empty(n_max, cst.dtype)
+    r = np.empty(n_max, cst.dtype)
+    c = np.empty(m, cst.dtype)
+    c_prev = np.empty(m, cst.dtype)
+    col = np.empty(m, cst.dtype)
+    cy = np.empty((4, m), cst.dtype)
+    fwd = np.empty((4, n_max), cst.dtype)
+    bwd = np.empty((4, m), cst.dtype)
+    xhat = np.empty((3, n_max), cst.dtype)
+    yhat = np.empty((3, m), cst.dtype)
+    wf = np.empty(n_max, cst.dtype)
+    wg = np.empty(m, cst.dtype)
+    ef = np.empty((3, n_max + 4), cst.dtype)
+    eg = np.empty((3, ky), cst.dtype)
+    for b in range(nb):
+        a = idx[b]
+        n = n_a[a]
+        k = n + 4
+        b_out = b_out_b[b]
+        corner = corner_b[b]
+        for i in range(n):
+            for d in range(3):
+                xs[d, i] = x_an3[a, i, d]
+                fx[d, i] = x_an3[a, i, d]
+        for j in range(m):
+            for d in range(3):
+                gy[d, j] = y_m3[j, d]
+        ef[:, :k] = zero
+        eg[:, :] = zero
+        ok = True
+        for it in range(lam_i.shape[0]):
+            inv2t = inv2t_i[it]
+            # 1. affinity p_ij = exp(-(|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T), exponent capped
+            for i in range(n):
+                f0, f1, f2 = fx[0, i], fx[1, i], fx[2, i]
+                x0, x1, x2 = xs[0, i], xs[1, i], xs[2, i]
+                for j in range(m):
+                    a0 = f0 - ys[0, j]
+                    a1 = f1 - ys[1, j]
+                    a2 = f2 - ys[2, j]
+                    b0 = x0 - gy[0, j]
+                    b1 = x1 - gy[1, j]
+                    b2 = x2 - gy[2, j]
+                    srow[j] = (
+                        np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) + np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+                    ) * inv2t
+                _exp_neg_row(srow, p, i, bits, bits_f, e_bias, e_shift, cst, m)
+            # p^T too: with both layouts every product below is an axpy along contiguous
+            # memory, which vectorises under strict IEEE (a dot-product reduction does not)
+            for i in range(n):
+                for j in range(m):
+                    pt[j, i] = p[i, j]
+            if stop_after == 0:
+                continue
+            # 2. Sinkhorn with an outlier row and column, rows first (GPU order); one pass
+            #    over p per sweep: row i's scale r_i, then its share of the column sums
+            c[:] = dt_one
+            c_out = dt_one
+            r_out = zero
+            for _ in range(sinkhorn_iters):
+                csum = zero
+                for j in range(m):
+                    csum += c[j]
+                r_out = a_out / (prior * csum + corner * c_out)
+                rd[:n] = zero
+                for j in range(m):
+                    cj = c[j]
+                    for i in range(n):
+                        rd[i] += pt[j, i] * cj
+                col[:] = zero
+                for i in range(n):
+                    ri = dt_one / (rd[i] + prior * c_out)
+                    r[i] = ri
+                    for j in range(m):
+                        col[j] += p[i, j] * ri
+                rsum = zero
+                for i in range(n):
+                    rsum += r[i]
+                for j in range(m):
+                    c_prev[j] = c[j]
+                    c[j] = dt_one / (col[j] + prior * r_out)
+                c_out = b_out / (prior * rsum + corner * r_out)
+            if stop_after == 1:
+                continue
+            # 3. targets: forward from the row-normalised match r p c_prev, backward from the
+            #    column-normalised one r p c
+            for j in range(m):
+                for d in range(4):
+                    cy[d, j] = ys[d, j] * c_prev[j]
+            fwd[:, :n] = zero
+            for j in range(m):
+                cy0, cy1, cy2, cy3 = cy[0, j], cy[1, j], cy[2, j], cy[3, j]
+                for i in range(n):
+                    pji = pt[j, i]
+                    fwd[0, i] += pji * cy0
+                    fwd[1, i] += pji * cy1
+                    fwd[2, i] += pji * cy2
+                    fwd[3, i] += pji * cy3
+            bwd[:, :] = zero
+            for i in range(n):
+                ri = r[i]
+                rx0, rx1, rx2 = ri * xs[0, i], ri * xs[1, i], ri * xs[2, i]
+                for j in range(m):
+                    pij = p[i, j]
+                    bwd[0, j] += pij * rx0
+                    bwd[1, j] += pij * rx1
+                    bwd[2, j] += pij * rx2
+                    bwd[3, j] += pij * ri
+            for i in range(n):
+                wf[i] = r[i] * fwd[3, i]
+                inlier = wf[i] >= cutoff or rule == 2
+                for d in range(3):
+                    val = r[i] * fwd[d, i] if rule == 1 else fwd[d, i] / max(fwd[3, i], tiny)
+                    xhat[d, i] = val if inlier else fx[d, i]
+            for j in range(m):
+                wg[j] = c[j] * bwd[3, j]
+                inlier = wg[j] >= cutoff or rule == 2
+                for d in range(3):
+                    val = c[j] * bwd[d, j] if rule == 1 else bwd[d, j] / max(bwd[3, j], tiny)
+                    yhat[d, j] = val if inlier else gy[d, j]
+            if stop_after == 2:
+                continue
+            # 4. TPS fits of f and g
+            lam = lam_i[it]
+            if rule == 2:
+                ok = _fit_weighted(g_ank[a, :n, :k], mu_ak[a, :k], h_ak3[a, :k], xhat, wf, lam, ef)
+                ok = ok and _fit_weighted(g_y, mu_y, h_y, yhat, wg, lam, eg)
+                if not ok:
+                    break
+            else:
+                _fit_unweighted(g_ank[a], mu_ak[a], h_ak3[a], xhat, lam, dt_one, ef, n, k)
+                _fit_unweighted(g_y, mu_y, h_y, yhat, lam, dt_one, eg, m, ky)
+            _apply(gt_akn[a], ef, fx, n, k)
+            _apply(gt_y, eg, gy, m, ky)
+        failed[b] = not ok
+        for i in range(n):
+            wf_out[b, i] = wf[i]
+            for d in range(3):
+                fx_out[b, i, d] = fx[d, i]
+                xhat_out[b, i, d] = xhat[d, i]
+                mf_out[b, i, d] = fwd[d, i] / max(fwd[3, i], tiny)
+        for j in range(m):
+            wg_out[b, j] = wg[j]
+            for d in range(3):
+                gy_out[b, j, d] = gy[d, j]
+                yhat_out[b, j, d] = yhat[d, j]
+                mg_out[b, j, d] = bwd[d, j] / max(bwd[3, j], tiny)
+        for q in range(k):
+            for d in range(3):
+                e_f[b, q, d] = ef[d, q]
+        for q in range(ky):
+            for d in range(3):
+                e_g[b, q, d] = eg[d, q]
+        if corr.shape[0] > 0:
+            for i in range(n):
+                for j in range(m):
+                    corr[b, i, j] = r[i] * p[i, j] * c_prev[j]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragma: no cover
+    """e = (G^T x^ + h) / (1 + lambda mu), e stored (3, k); vectorised over k."""
+    for d in range(3):
+        for q in range(k):
+            e_3k[d, q] = h_k3[q, d]
+    for d in range(3):  # one output row at a time: a plain axpy the vectoriser accepts
+        e_d = e_3k[d]
+        for i in range(n):
+            t = target_3n[d, i]
+            for q in range(k):
+                e_d[q] += g_nk[i, q] * t
+    for q in range(k):
+        s = one / (one + lam * mu_k[q])
+        for d in range(3):
+            e_3k[d, q] *= s
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _apply(gt_kn, e_3k, out_3n, n, k):  # pragma: no cover - compiled
+    """out = G e, out stored (3, n); vectorised over n."""
+    out_3n[:, :n] = 0
+    for d in range(3):
+        out_d = out_3n[d]
+        for q in range(k):
+            e = e_3k[d, q]
+            for i in range(n):
+                out_d[i] += gt_kn[q, i] * e
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _fit_weighted(g_nk, mu_k, h_k3, target_3n, w_n, lam, e_3k):  # pragma: no cover
+    """Solve (I + lambda diag mu - G^T diag(1-w) G) e = G^T diag(w) x^ + h; False if singular."""
+    n, k = g_nk.shape
+    g = np.ascontiguousarray(g_nk)
+    gw = np.empty((n, k), g.dtype)
+    rhs_n = np.empty((n, 3), g.dtype)
+    for i in range(n):
+        for q in range(k):
+            gw[i, q] = g[i, q] * (1 - w_n[i])
+        for d in range(3):
+            rhs_n[i, d] = w_n[i] * target_3n[d, i]
+    gt = np.ascontiguousarray(g.T)
+    lhs = -(gt @ gw)
+    for q in range(k):
+        lhs[q, q] += 1 + lam * mu_k[q]
+    rhs = gt @ rhs_n + h_k3
+    try:
+        e = np.linalg.solve(lhs, rhs)
+    except Exception:  # numba raises LinAlgError for a singular system
+        return False
+    for q in range(k):
+        for d in range(3):
+            if not np.isfinite(e[q, d]):
+                return False
+            e_3k[d, q] = e[q, d]
+    return True

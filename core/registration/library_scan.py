@@ -1,0 +1,151 @@
+"""The library scan: one scene against every demo, with the demo side cached per library."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration.params import CACHE_VERSION, SCAN, RegistrationParams
+from knotlab.core.registration.rpm import CloudSide, ScanResult, demo_side, run_chunks, scene_side
+
+
+def library_digest(demo_clouds: Sequence[np.ndarray]) -> str:
+    """sha1 over the demo clouds' float64 bytes and shapes (a cache key when none is given)."""
+    digest = hashlib.sha1()
+    for cloud in demo_clouds:
+        arr = np.ascontiguousarray(np.asarray(cloud, dtype=float))
+        digest.update(str(arr.shape).encode())
+        digest.update(arr.tobytes())
+    return digest.hexdigest()
+
+
+def _params_key(params: RegistrationParams) -> str:
+    """The settings the demo-side precomputation depends on."""
+    return f"rot{params.rot_coef}_scale{params.scale_m}_cap{params.max_points}"
+
+
+class LibraryRegistrar:
+    """Scans scene clouds against demo libraries; demo-side factorisations cached by library key.
+
+    The cache is per instance: an LRU dict in memory and, when `cache_dir` is given, one `.npz`
+    per library under `cache_dir/.cache/`. A library is identified by the caller's key (the
+    library's content hash) or, without one, by `library_digest` of the clouds.
+    """
+
+    def __init__(
+        self,
+        params: RegistrationParams = SCAN,
+        *,
+        cache_dir: str | os.PathLike[str] | None = None,
+        max_cached: int = 4,
+        chunk_size: int = 8,
+        n_workers: int = 1,
+    ) -> None:
+        if chunk_size < 1 or n_workers < 1 or max_cached < 1:
+            raise InvalidInputError("chunk_size, n_workers and max_cached must be >= 1")
+        self.params = params
+        self.cache_dir = None if cache_dir is None else Path(cache_dir) / ".cache"
+        self.max_cached = max_cached
+        self.chunk_size = chunk_size
+        self.n_workers = n_workers
+        self._cache: OrderedDict[str, CloudSide] = OrderedDict()
+
+    def prepare(
+        self, demo_clouds: Sequence[np.ndarray], key: str | None = None, params=None
+    ) -> CloudSide:
+        """Demo-side precomputation (normalise, factorise, pad), from cache when possible."""
+        params = params or self.params
+        full_key = f"{key or library_digest(demo_clouds)}_{_params_key(params)}"
+        if full_key in self._cache:
+            self._cache.move_to_end(full_key)
+            return self._cache[full_key]
+        side = self._load(full_key, len(demo_clouds))
+        if side is None:
+            side = demo_side(demo_clouds, params)
+            self._save(full_key, side)
+        self._cache[full_key] = side
+        while len(self._cache) > self.max_cached:
+            self._cache.popitem(last=False)
+        return side
+
+    def scan(
+        self,
+        scene_cloud: np.ndarray,
+        demo_clouds: Sequence[np.ndarray],
+        key: str | None = None,
+        *,
+        params: RegistrationParams | None = None,
+        keep_correspondence: bool = False,
+        timings: dict[str, float] | None = None,
+    ) -> ScanResult:
+        """Register the scene against every demo (bad demos: ok False, cost +inf; never raises)."""
+        params = params or self.params
+        demo = self.prepare(demo_clouds, key, params)
+        scene = scene_side(scene_cloud, params)
+        return run_chunks(
+            demo,
+            scene,
+            params,
+            chunk_size=self.chunk_size,
+            n_workers=self.n_workers,
+            keep_corr=keep_correspondence,
+            timings=timings,
+        )
+
+    def _path(self, full_key: str) -> Path | None:
+        if self.cache_dir is None:
+            return None
+        safe = hashlib.sha1(full_key.encode()).hexdigest()
+        return self.cache_dir / f"registration_v{CACHE_VERSION}_{safe}.npz"
+
+    def _save(self, full_key: str, side: CloudSide) -> None:
+        path = self._path(full_key)
+        if path is None:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {f.name: getattr(side, f.name) for f in fields(side) if f.name != "_casts"}
+        clouds = arrays.pop("clouds")
+        reasons = arrays.pop("reason_a")
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(
+            tmp,
+            key=np.array(full_key),
+            reason_a=np.array(reasons, dtype=str),
+            clouds_n=np.array([len(c) for c in clouds]),
+            clouds=np.concatenate(clouds) if clouds else np.zeros((0, 3)),
+            **arrays,
+        )
+        os.replace(tmp, path)  # atomic: a concurrent reader never sees half a file
+
+    def _load(self, full_key: str, n_demos: int) -> CloudSide | None:
+        path = self._path(full_key)
+        if path is None or not path.exists():
+            return None
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) != full_key or len(data["n_a"]) != n_demos:
+                return None
+            names = [
+                f.name for f in fields(CloudSide) if f.name not in ("clouds", "reason_a", "_casts")
+            ]
+            arrays = {name: data[name] for name in names}
+            split = np.cumsum(data["clouds_n"])[:-1]
+            clouds = tuple(np.split(data["clouds"], split))
+            reasons = tuple(str(s) for s in data["reason_a"])
+        return CloudSide(clouds=clouds, reason_a=reasons, **arrays)
+
+
+def scan_library(
+    scene_cloud: np.ndarray,
+    demo_clouds: Sequence[np.ndarray],
+    params: RegistrationParams = SCAN,
+    **kwargs,
+) -> ScanResult:
+    """One-off scan without a cache (see LibraryRegistrar for repeated queries)."""
+    return LibraryRegistrar(params).scan(scene_cloud, demo_clouds, **kwargs)

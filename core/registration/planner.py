@@ -1,0 +1,135 @@
+"""Turn a chosen demo into an executable trajectory for the current scene (trajectory transfer).
+
+The library scan ranks demos with the cheap ``SCAN`` schedule; the chosen demo is registered
+again with the ``EXACT`` schedule and its gripper trajectory warped through that f (paper
+section II; lfd_facts section 3.2).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from knotlab.core.demos.library import DemoLibrary
+from knotlab.core.errors import KnotlabError
+from knotlab.core.failures import FailureKind
+from knotlab.core.registration import EXACT, Registration, RegistrationParams, register
+from knotlab.core.registration.transfer import warp_trajectory
+from knotlab.core.world.stages import Stage
+from knotlab.core.world.trajectory import GripperTrajectory
+
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import ExecutionResult, SimSnapshot
+
+# Warped waypoints are clipped into the reachable box above the table: a warp that pushes a
+# waypoint into the table (or absurdly high) is a transfer artefact, not an intention.
+MIN_HEIGHT_M = 0.01
+MAX_HEIGHT_M = 0.8
+
+
+@dataclass(frozen=True, eq=False)
+class TransferPlan:
+    """A demo transferred onto a scene: the warped trajectory, or why there is none."""
+
+    demo_index: int
+    trajectory: GripperTrajectory | None
+    registration: Registration | None
+    failure: str | None = None
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def failure_kind(self) -> FailureKind | None:
+        """REGISTRATION when registration or warping failed, else None."""
+        return None if self.failure is None else FailureKind.REGISTRATION
+
+    @property
+    def ok(self) -> bool:
+        """True when there is a trajectory to execute."""
+        return self.trajectory is not None
+
+
+class DemoTransferer:
+    """Registers one library demo onto a scene cloud and warps its gripper trajectory."""
+
+    def __init__(self, library: DemoLibrary, params: RegistrationParams = EXACT) -> None:
+        self.library = library
+        self.params = params
+
+    def plan(self, cloud_n3: np.ndarray, demo_index: int) -> TransferPlan:
+        """Exact registration of demo ``demo_index`` onto the cloud, then warp; never raises."""
+        seg = self.library[demo_index]
+        t0 = time.perf_counter()
+        try:
+            reg = register(seg.pre_cloud_n3, cloud_n3, self.params)
+        except (KnotlabError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            return TransferPlan(demo_index, None, None, f"registration: {exc}")
+        t1 = time.perf_counter()
+        timings = {"register_s": t1 - t0}
+        if not reg.ok:
+            return TransferPlan(demo_index, None, reg, f"registration: {reg.reason}", timings)
+        try:
+            warped = warp_trajectory(seg.trajectory, reg.f)
+        except (KnotlabError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            return TransferPlan(demo_index, None, reg, f"warp: {exc}", timings)
+        pos = warped.positions_gt3.copy()
+        pos[..., 2] = np.clip(pos[..., 2], MIN_HEIGHT_M, MAX_HEIGHT_M)
+        traj = warped.with_positions(pos, warped.rotations_gt33)
+        timings["warp_s"] = time.perf_counter() - t1
+        return TransferPlan(demo_index, traj, reg, None, timings)
+
+
+@dataclass(frozen=True, eq=False)
+class ActionOutcome:
+    """What executing one transferred demo did to the world."""
+
+    plan: TransferPlan
+    execution: ExecutionResult | None  # None when nothing was executed
+    nodes_after_k3: np.ndarray
+    knot: bool
+    stage: Stage
+    gauss_code: str
+    snapshot_after: SimSnapshot
+
+    @property
+    def failure(self) -> str | None:
+        """Why this action failed outright (registration, misgrasp, explosion), else None."""
+        if not self.plan.ok:
+            return self.plan.failure
+        if self.execution is not None and not self.execution.ok:
+            return self.execution.failure
+        return None
+
+    @property
+    def failure_kind(self) -> FailureKind | None:
+        """The kind of :attr:`failure` as set where it happened (planner or simulator)."""
+        if not self.plan.ok:
+            return self.plan.failure_kind
+        if self.execution is not None:
+            return self.execution.failure_kind
+        return None
+
+    @property
+    def exploded(self) -> bool:
+        """The simulation blew up: the world cannot continue from here."""
+        return self.failure_kind is FailureKind.EXPLODED
+
+
+def apply_demo(world, transferer: DemoTransferer, cloud_n3: np.ndarray, demo_index: int):
+    """Plan demo ``demo_index`` onto the cloud, execute it in ``world``, analyse the result."""
+    from knotlab.core.world.stages import rope_stage
+
+    plan = transferer.plan(cloud_n3, demo_index)
+    execution = None
+    if plan.ok:
+        t0 = time.perf_counter()
+        execution = world.execute(plan.trajectory)
+        plan.timings["execute_s"] = time.perf_counter() - t0
+    nodes = world.rope_nodes()
+    if np.all(np.isfinite(nodes)):
+        stage, code = rope_stage(nodes)
+    else:
+        stage, code = Stage.OTHER, ""
+    return ActionOutcome(plan, execution, nodes, stage is Stage.KNOT, stage, code, world.snapshot())

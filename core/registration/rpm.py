@@ -1,0 +1,496 @@
+"""Bidirectional TPS-RPM (deterministic annealing) for one pair or a whole demo library at once.
+
+One implementation, `rpm_batch`, registers a batch of demo clouds X_a against one scene cloud Y;
+a single pair is a batch of one. For each demo a it fits f_a: X_a -> Y and g_a: Y -> X_a
+(`tps` conventions) by alternating, for iteration i with bending lambda_i and temperature T_i
+(both geometric from init to final, as lfd's `loglinspace`):
+
+  1. affinity   p_ij = exp(-(||f(x_i) - y_j|| + ||x_i - g(y_j)||) / (2 T_i))  (not squared)
+  2. an outlier row and column (prior 0.1, marginals n*frac and m*frac) and `sinkhorn_iters`
+     Sinkhorn sweeps, rows first, giving row- and column-normalised matches M^r, M^c;
+  3. targets x^_i = sum_j M^r_ij y_j (and y^_j = sum_i M^c_ij x_i) and a TPS fit for f and g.
+
+Target rules (`RegistrationParams.target_rule`), all through the same kernel:
+  * "batch"    targets x^_i = sum_j M^r_ij y_j / w_i (divided by the inlier mass w_i); a point
+               whose inlier mass is below `outlier_cutoff` keeps its current warped position as
+               target; the fit is unweighted, so with the spectral basis of `tps.TpsBasis`
+               each fit is e = (G^T x^ + h) / (1 + lambda mu): products only, precomputed per
+               cloud. Used by `SCAN` (features, nearest-neighbour cost). Corner frac*sqrt(nm).
+  * "gpu"      as "batch" but targets NOT divided by w_i (the literal GPU `getTargPts` rule).
+  * "weighted" the paper-era CPU rule: x^_i = sum_j M^r_ij y_j / w_i and a fit weighted by w_i
+               (one k x k solve per demo per iteration). Used by `EXACT` (transfer).
+               Outlier corner prior*sqrt(nm).
+
+Normalisation: every cloud is translated by its own median (so the identity start is lfd's
+median-translation initialisation) and divided by ONE fixed isotropic length `scale_m` shared by
+all clouds. Not a per-cloud bounding box: per-axis boxes blow up on straight ropes, and because
+the kernel -r is 1-homogeneous, scaling a pair by s is the same as dividing lambda by s, so a
+pair-dependent scale would make the per-demo precomputation scene-dependent. Costs are in these
+normalised ("unit-box") coordinates; f and g are returned in world coordinates.
+
+The annealing loop itself is one numba kernel (`rpm_kernel`, see the comment above it); the
+single-pair `register` runs it as a batch of one, so a scan and a pair use the same code.
+
+Shape suffixes: a demos, b demos in a chunk, n demo points (padded), m scene points, k TPS
+basis coefficients, 3 xyz.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError, SolverError
+from knotlab.core.registration.kernel import PHASES, TARGET_RULES, kernel_constants, rpm_kernel
+from knotlab.core.registration.params import (
+    COST_NAMES,
+    EXACT,
+    RegistrationCosts,
+    RegistrationParams,
+    clean_cloud,
+)
+from knotlab.core.registration.tps import ThinPlateSpline, TpsBasis, tps_basis
+
+
+@dataclass(frozen=True, eq=False)
+class CloudSide:
+    """One side's clouds, normalised and factorised, padded to a common size (float64)."""
+
+    clouds: tuple[np.ndarray, ...]  # cleaned world clouds (empty array for a bad one)
+    centre_a3: np.ndarray  # median of each cloud (world)
+    x_an3: np.ndarray  # normalised, zero-padded
+    mask_an: np.ndarray  # bool, valid points
+    g_ank: np.ndarray
+    mu_ak: np.ndarray
+    h_ak3: np.ndarray
+    theta_apk: np.ndarray  # [t; B; W] = theta e, W rows padded
+    n_a: np.ndarray  # valid points per cloud
+    ok_a: np.ndarray
+    reason_a: tuple[str, ...]
+    _casts: dict = field(default_factory=dict, repr=False)
+
+    def cast(self, dtype: np.dtype) -> dict[str, np.ndarray]:
+        """The arrays the RPM loop reads, in its dtype, converted once and kept."""
+        key = np.dtype(dtype).str
+        if key not in self._casts:
+            self._casts[key] = {
+                "x_an3": self.x_an3.astype(dtype),
+                "g_ank": self.g_ank.astype(dtype),
+                "gt_akn": np.ascontiguousarray(np.swapaxes(self.g_ank, 1, 2), dtype=dtype),
+                "mu_ak": self.mu_ak.astype(dtype),
+                "h_ak3": self.h_ak3.astype(dtype),
+            }
+        return self._casts[key]
+
+    def __len__(self) -> int:
+        return int(self.n_a.shape[0])
+
+    def basis(self, a: int) -> TpsBasis:
+        """The TpsBasis of cloud a (normalised coordinates)."""
+        n = int(self.n_a[a])
+        k = n + 4  # coefficients past the cloud's own count are zero padding
+        return TpsBasis(
+            self.x_an3[a, :n],
+            np.zeros(3),
+            self.g_ank[a, :n, :k],
+            self.mu_ak[a, :k],
+            self.h_ak3[a, :k],
+            self.theta_apk[a, : 4 + n, :k],
+        )
+
+
+def _build_side(
+    clouds: Sequence[np.ndarray | None], reasons: Sequence[str], params: RegistrationParams
+) -> CloudSide:
+    """Normalise and factorise each cloud; a cloud that cannot be factorised is marked not ok."""
+    n_max = max([len(c) for c in clouds if c is not None] + [5])
+    k_max = n_max + 4
+    n_clouds = len(clouds)
+    side = dict(
+        centre_a3=np.zeros((n_clouds, 3)),
+        x_an3=np.zeros((n_clouds, n_max, 3)),
+        mask_an=np.zeros((n_clouds, n_max), dtype=bool),
+        g_ank=np.zeros((n_clouds, n_max, k_max)),
+        mu_ak=np.zeros((n_clouds, k_max)),
+        h_ak3=np.zeros((n_clouds, k_max, 3)),
+        theta_apk=np.zeros((n_clouds, 4 + n_max, k_max)),
+        n_a=np.zeros(n_clouds, dtype=int),
+    )
+    ok = np.zeros(n_clouds, dtype=bool)
+    reason = list(reasons)
+    kept: list[np.ndarray] = []
+    for a, cloud in enumerate(clouds):
+        kept.append(np.zeros((0, 3)) if cloud is None else cloud)
+        if cloud is None:
+            continue
+        centre = np.median(cloud, axis=0)
+        x = (cloud - centre) / params.scale_m
+        try:
+            basis = tps_basis(x, params.normalised_rot_coef)
+        except SolverError as exc:
+            reason[a] = str(exc)
+            continue
+        n, k = len(x), basis.n_coef
+        side["centre_a3"][a] = centre
+        side["x_an3"][a, :n] = x
+        side["mask_an"][a, :n] = True
+        side["g_ank"][a, :n, :k] = basis.g_nk
+        side["mu_ak"][a, :k] = basis.mu_k
+        side["h_ak3"][a, :k] = basis.h_k3
+        side["theta_apk"][a, : 4 + n, :k] = basis.theta_pk
+        side["n_a"][a] = n
+        ok[a] = True
+    return CloudSide(clouds=tuple(kept), ok_a=ok, reason_a=tuple(reason), **side)  # type: ignore[arg-type]
+
+
+def demo_side(demo_clouds: Sequence[np.ndarray], params: RegistrationParams) -> CloudSide:
+    """Demo side of a library: a bad demo cloud is reported (not ok + reason), never raised."""
+    cleaned: list[np.ndarray | None] = []
+    reasons: list[str] = []
+    for a, cloud in enumerate(demo_clouds):
+        arr = np.asarray(cloud)
+        if arr.ndim != 2 or arr.shape[-1] != 3:
+            raise InvalidInputError(f"demo cloud {a} must have shape (n, 3), got {arr.shape}")
+        try:
+            cleaned.append(clean_cloud(arr, f"demo cloud {a}", params.max_points))
+            reasons.append("")
+        except InvalidInputError as exc:
+            cleaned.append(None)
+            reasons.append(str(exc))
+    if not cleaned:
+        raise InvalidInputError("the demo library is empty")
+    return _build_side(cleaned, reasons, params)
+
+
+# ----------------------------------------------------------------------------- the RPM core
+
+
+@dataclass(frozen=True, eq=False)
+class _ChunkOut:
+    e_f: np.ndarray  # (b, k, 3)
+    e_g: np.ndarray  # (b, k_y, 3)
+    costs_bc: np.ndarray
+    corr_bnm: np.ndarray | None
+    failed: dict[int, str]
+
+
+def _solve_weighted(
+    g_bnk: np.ndarray, mu_bk: np.ndarray, h_bk3: np.ndarray, target_bn3, w_bn, lam: float
+) -> tuple[np.ndarray, dict[int, str]]:
+    """Batched (I + lambda diag mu - G^T diag(1-w) G) e = G^T diag(w) y^ + h."""
+    k = g_bnk.shape[-1]
+    lhs = np.eye(k) + lam * mu_bk[:, :, None] * np.eye(k)
+    gw = g_bnk * (1.0 - w_bn)[:, :, None]
+    lhs = lhs - np.swapaxes(g_bnk, 1, 2) @ gw
+    rhs = np.swapaxes(g_bnk, 1, 2) @ (w_bn[:, :, None] * target_bn3) + h_bk3
+    failed: dict[int, str] = {}
+    try:
+        return np.linalg.solve(lhs, rhs), failed
+    except np.linalg.LinAlgError:
+        out = np.zeros_like(rhs)
+        for b in range(lhs.shape[0]):
+            try:
+                out[b] = np.linalg.solve(lhs[b], rhs[b])
+            except np.linalg.LinAlgError:
+                failed[b] = "weighted TPS system singular (no inlier mass?)"
+        return out, failed
+
+
+class _PhaseClock:
+    """Accumulates wall time per phase into a dict when one is given (for the benchmark)."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.timings = timings
+        self.last = time.perf_counter() if timings is not None else 0.0
+
+    def tick(self, phase: str) -> None:
+        if self.timings is not None:
+            now = time.perf_counter()
+            self.timings[phase] = self.timings.get(phase, 0.0) + now - self.last
+            self.last = now
+
+
+# ----------------------------------------------------------------------------- numba kernels
+#
+# One fused kernel, `rpm_kernel`, runs the whole annealing loop for a chunk of demos, one demo
+# at a time (its correspondence matrix, 90 kB at 150 x 150 float32, stays in L1/L2 for all
+# iterations). It is compiled without fastmath (strict IEEE; results do not depend on
+# reassociation) and without numba's own threading (`parallel=False`): the one level of
+# parallelism is `LibraryRegistrar`'s worker threads over chunks, which the kernel allows by
+# releasing the GIL (`nogil=True`); numba's threading layer is never started. Two idioms keep
+# the inner loops SIMD-vectorisable under strict IEEE:
+#   * p is kept in both layouts (p and p^T, one copy per iteration) so every Sinkhorn and
+#     target product is an axpy along contiguous memory; a dot-product reduction is not
+#     vectorised without reassociation;
+#   * exp(-s) is `_exp_neg_row`: Cody-Waite range reduction s = k ln2 - r, a degree-10 Taylor
+#     polynomial (relative truncation error < 3e-13) and 2^-k assembled from its IEEE bits;
+#     LLVM's exp is a scalar libm call when SVML is absent. Measured error vs np.exp: < 1e-7
+#     relative in float32 (about 1 ulp), < 1e-12 in float64 (tests/test_registration.py).
+
+
+def rpm_batch(
+    demo: CloudSide,
+    idx: np.ndarray,
+    scene: CloudSide,
+    params: RegistrationParams,
+    keep_corr: bool,
+    timings: dict[str, float] | None = None,
+    stop_after: int = len(PHASES) - 1,
+) -> _ChunkOut:
+    """Run bidirectional TPS-RPM for demos idx against the scene (one cloud) in one batch."""
+    clock = _PhaseClock(timings)
+    dt = np.dtype(params.dtype)
+    weighted = params.target_rule == "weighted"
+    n_valid = demo.n_a[idx]
+    n = max(int(n_valid.max()), 1)
+    k = n + 4
+    cast = demo.cast(dt)
+    m = int(scene.n_a[0])
+    ky = m + 4
+    scene_cast = scene.cast(dt)
+    y = np.ascontiguousarray(scene_cast["x_an3"][0, :m])
+    g_y = np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky])
+    gt_y = np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m])
+    mu_y = np.ascontiguousarray(scene_cast["mu_ak"][0, :ky])
+    h_y = np.ascontiguousarray(scene_cast["h_ak3"][0, :ky])
+    nb = len(idx)
+    frac = params.outlier_frac
+    corner_coef = frac if not weighted else params.outlier_prior
+    a_out = np.array(m * frac, dt)
+    b_out = (n_valid * frac).astype(dt)
+    corner = (corner_coef * np.sqrt(n_valid * m)).astype(dt)
+    lams, temps = params.normalised_schedule()
+    cst = kernel_constants(dt, params)
+    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)
+    e_bias, e_shift = (127, 23) if dt == np.float32 else (1023, 52)
+
+    e_f = np.zeros((nb, k, 3), dt)
+    e_g = np.zeros((nb, ky, 3), dt)
+    fx, xhat, mf = (np.zeros((nb, n, 3), dt) for _ in range(3))
+    gy, yhat, mg = (np.zeros((nb, m, 3), dt) for _ in range(3))
+    w_f = np.zeros((nb, n), dt)
+    w_g = np.zeros((nb, m), dt)
+    corr = np.zeros((nb, n, m) if keep_corr else (0, 0, 0), dt)
+    bad = np.zeros(nb, np.bool_)
+    clock.tick("setup")
+    rpm_kernel(
+        np.ascontiguousarray(idx, dtype=np.int64),
+        cast["x_an3"],
+        demo.n_a,
+        cast["g_ank"],
+        cast["gt_akn"],
+        cast["mu_ak"],
+        cast["h_ak3"],
+        y,
+        g_y,
+        gt_y,
+        mu_y,
+        h_y,
+        lams.astype(dt),
+        (0.5 / temps).astype(dt),
+        cst,
+        bits,
+        bits.view(dt),
+        e_bias,
+        e_shift,
+        a_out,
+        b_out,
+        corner,
+        TARGET_RULES[params.target_rule],
+        params.sinkhorn_iters,
+        stop_after,
+        e_f,
+        e_g,
+        fx,
+        gy,
+        xhat,
+        yhat,
+        w_f,
+        w_g,
+        mf,
+        mg,
+        corr,
+        bad,
+    )
+    clock.tick("rpm kernel")
+    failed = {int(b): "weighted TPS system singular (no inlier mass?)" for b in np.flatnonzero(bad)}
+
+    # costs, in normalised coordinates, float64
+    fx64, gy64 = fx.astype(float), gy.astype(float)
+    xhat64, yhat64 = xhat.astype(float), yhat.astype(float)
+    w_f64, w_g64 = w_f.astype(float), w_g.astype(float)
+    wf = w_f64 if weighted else demo.mask_an[idx, :n].astype(float)
+    wg = w_g64 if weighted else np.ones((nb, m))
+    map_fwd = np.einsum("bn,bn->b", wf, ((fx64 - xhat64) ** 2).sum(axis=2))
+    map_bwd = np.einsum("bm,bm->b", wg, ((gy64 - yhat64) ** 2).sum(axis=2))
+    e_f64, e_g64 = e_f.astype(float), e_g.astype(float)
+    bend_f = np.einsum("bk,bkd->b", demo.mu_ak[idx, :k], e_f64**2)
+    bend_g = np.einsum("k,bkd->b", scene.mu_ak[0, :ky], e_g64**2)
+    inl_f = w_f64.sum(axis=1) / np.maximum(n_valid, 1)
+    inl_g = w_g64.mean(axis=1)
+    b_f = np.einsum("bpk,bkd->bpd", demo.theta_apk[idx, 1:4, :k], e_f64)
+    b_g = np.einsum("pk,bkd->bpd", scene.theta_apk[0, 1:4, :ky], e_g64)
+    aff_f = np.linalg.norm(b_f - np.eye(3), axis=(1, 2))
+    aff_g = np.linalg.norm(b_g - np.eye(3), axis=(1, 2))
+    res_f = np.linalg.norm(fx64 - mf, axis=2)
+    res_g = np.linalg.norm(gy64 - mg, axis=2)
+    res_f = (w_f64 * res_f).sum(1) / np.maximum(w_f64.sum(1), 1e-30) * params.scale_m
+    res_g = (w_g64 * res_g).sum(1) / np.maximum(w_g64.sum(1), 1e-30) * params.scale_m
+    costs = np.stack(
+        [map_fwd, map_bwd, bend_f, bend_g, inl_f, inl_g, aff_f, aff_g, res_f, res_g], axis=1
+    )
+    clock.tick("costs")
+    return _ChunkOut(e_f64, e_g64, costs, corr.astype(float) if keep_corr else None, failed)
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """One bidirectional registration: f (demo -> scene), g (scene -> demo), world coordinates."""
+
+    f: ThinPlateSpline
+    g: ThinPlateSpline
+    costs: RegistrationCosts
+    ok: bool
+    reason: str
+    corr_nm: np.ndarray | None  # row-normalised soft correspondence (demo point i, scene point j)
+
+    @property
+    def nn_cost(self) -> float:
+        """Nearest-neighbour cost (paper-era GPU batch), +inf when not ok."""
+        return self.costs.nn_cost if self.ok else float("inf")
+
+
+@dataclass(frozen=True, eq=False)
+class ScanResult:
+    """Registrations of one scene against every demo a; arrays over demos."""
+
+    params: RegistrationParams
+    costs_ac: np.ndarray  # columns COST_NAMES; +inf rows where not ok
+    ok_a: np.ndarray
+    reason_a: tuple[str, ...]
+    e_f_ak3: np.ndarray
+    e_g_ak3: np.ndarray
+    corr_anm: np.ndarray | None
+    _demo: CloudSide
+    _scene: CloudSide
+
+    @property
+    def nn_cost_a(self) -> np.ndarray:
+        """map_fwd + map_bwd + bend_f + bend_g per demo (+inf where not ok); lower is better."""
+        return self.costs_ac[:, :4].sum(axis=1)
+
+    def cost(self, name: str) -> np.ndarray:
+        """One cost column by name (see COST_NAMES)."""
+        return self.costs_ac[:, COST_NAMES.index(name)]
+
+    def costs(self, a: int) -> RegistrationCosts:
+        """Cost record of demo a."""
+        return RegistrationCosts(*(float(v) for v in self.costs_ac[a]))
+
+    def f(self, a: int) -> ThinPlateSpline:
+        """f_a: demo a's cloud -> scene, world coordinates."""
+        s = self.params.scale_m
+        basis = self._demo.basis(a)
+        spline = basis.spline(self.e_f_ak3[a, : basis.n_coef])
+        return spline.compose_affine(s, self._demo.centre_a3[a], self._scene.centre_a3[0])
+
+    def g(self, a: int) -> ThinPlateSpline:
+        """g_a: scene -> demo a's cloud, world coordinates."""
+        s = self.params.scale_m
+        basis = self._scene.basis(0)
+        spline = basis.spline(self.e_g_ak3[a, : basis.n_coef])
+        return spline.compose_affine(s, self._scene.centre_a3[0], self._demo.centre_a3[a])
+
+    def registration(self, a: int) -> Registration:
+        """Everything about demo a as a Registration record."""
+        corr = None if self.corr_anm is None else self.corr_anm[a, : self._demo.n_a[a]]
+        return Registration(
+            self.f(a), self.g(a), self.costs(a), bool(self.ok_a[a]), self.reason_a[a], corr
+        )
+
+
+def run_chunks(
+    demo: CloudSide,
+    scene: CloudSide,
+    params: RegistrationParams,
+    *,
+    chunk_size: int,
+    n_workers: int,
+    keep_corr: bool,
+    timings: dict[str, float] | None = None,
+) -> ScanResult:
+    """Registers the scene against every demo, in chunks (independent batches) over workers."""
+    n_demos = len(demo)
+    demo.cast(np.dtype(params.dtype))  # convert once, before any worker thread reads it
+    good = np.flatnonzero(demo.ok_a)
+    chunks = [good[i : i + chunk_size] for i in range(0, len(good), chunk_size)]
+
+    def work(idx: np.ndarray) -> _ChunkOut:
+        # A demo whose fit overflows is detected below and reported; no warning spam for it.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return rpm_batch(demo, idx, scene, params, keep_corr, timings)
+
+    if n_workers > 1 and len(chunks) > 1:
+        # NumPy releases the GIL in its kernels, so threads share one copy of the library.
+        with ThreadPoolExecutor(n_workers) as pool:
+            outs = list(pool.map(work, chunks))
+    else:
+        outs = [work(idx) for idx in chunks]
+    n_max = demo.x_an3.shape[1]
+    m = int(scene.n_a[0])
+    costs = np.full((n_demos, len(COST_NAMES)), np.inf)
+    e_f = np.zeros((n_demos, n_max + 4, 3))
+    e_g = np.zeros((n_demos, m + 4, 3))
+    corr = np.zeros((n_demos, n_max, m)) if keep_corr else None
+    ok = demo.ok_a.copy()
+    reason = list(demo.reason_a)
+    with np.errstate(invalid="ignore"):
+        for idx, out in zip(chunks, outs, strict=True):
+            k = out.e_f.shape[1]
+            costs[idx] = out.costs_bc
+            e_f[idx, :k] = out.e_f
+            e_g[idx] = out.e_g
+            if corr is not None and out.corr_bnm is not None:
+                corr[idx, : out.corr_bnm.shape[1]] = out.corr_bnm
+            for b, why in out.failed.items():
+                ok[idx[b]] = False
+                reason[idx[b]] = why
+    finite = np.all(np.isfinite(costs), axis=1) & np.all(np.isfinite(e_f), axis=(1, 2))
+    finite &= np.all(np.isfinite(e_g), axis=(1, 2))
+    for a in np.flatnonzero(ok & ~finite):
+        ok[a] = False
+        reason[a] = "registration produced non-finite values"
+    costs[~ok] = np.inf
+    return ScanResult(params, costs, ok, tuple(reason), e_f, e_g, corr, demo, scene)
+
+
+def scene_side(scene_cloud: np.ndarray, params: RegistrationParams) -> CloudSide:
+    """Scene side: a bad scene cloud raises (it concerns every demo)."""
+    cloud = clean_cloud(scene_cloud, "scene cloud", params.max_points)
+    side = _build_side([cloud], [""], params)
+    if not side.ok_a[0]:
+        raise SolverError(f"scene cloud: {side.reason_a[0]}")
+    return side
+
+
+def register(
+    demo_cloud: np.ndarray, scene_cloud: np.ndarray, params: RegistrationParams = EXACT
+) -> Registration:
+    """Bidirectional TPS-RPM of one demo cloud onto one scene cloud (a batch of one)."""
+    demo_arr = clean_cloud(demo_cloud, "demo cloud", params.max_points)
+    demo = demo_side([demo_arr], params)
+    if not demo.ok_a[0]:
+        raise SolverError(f"demo cloud: {demo.reason_a[0]}")
+    scene = scene_side(scene_cloud, params)
+    result = run_chunks(demo, scene, params, chunk_size=1, n_workers=1, keep_corr=True)
+    return result.registration(0)
+
+
+# ----------------------------------------------------------------------------- library scans

@@ -1,0 +1,1 @@
+"""Choosing the demo: features, landmarks, labels, Q-model, learner, model selection, policies."""

@@ -1,0 +1,319 @@
+"""Task-independent features phi(s, a) of every demo a at once, from one library scan.
+
+Shape suffixes: a = demos (actions), d = features, p = points, k = demo steps (phases).
+
+For each demo a, from the bidirectional registration of its cloud onto the scene:
+- c1 = map_fwd + map_bwd (mapping error), c2 = bend_f, c3 = bend_g (lfd_facts section 4);
+- q(c1, c2, c3): the six products c_i c_j, i <= j (the original's quadratic features);
+- grasp_dist: metres from each warped grasp point of demo a to the nearest scene point (max over
+  the segment's grasps). The original's version of this feature was 0 by a loader bug (facts
+  section 14.7); a transferred grasp that lands off the rope is a misgrasp, so this predicts one;
+- phase_k: soft "which demo step does this state look like" (k = 0, 1, 2): the softmax over demos
+  of the relative NN cost, summed per demo step. The same for every action (the landmark idea of
+  facts section 4, with the library's own clouds as landmarks): it only enters the Bellman and
+  dead-end rows, where it lets the value depend on progress;
+- phase_match: phase_k at demo a's own step k(a): does this demo belong to the state's phase?;
+- landmark[l]: with landmarks (core/landmarks.py: labelled and dead-end training states, as the
+  original's 50 + 20), the same softmax over the landmarks' registration costs to the state. The
+  same for every action, so it only shapes the value: it lets V(s') tell a state the expert went
+  on from apart from a dead end, which is what lookahead compares;
+- e_a: a one-hot of the demo (a per-demo prior: some demos transfer far better than others).
+Not repeated from the original (facts section 14): positive-exponent gram features, indicators
+that are never cleared, c2-only "bend" features labelled c2 + c3.
+
+Demos whose registration failed get the worst finite value of each cost column (their Q is
+masked by the policies anyway, via ``scan.ok_a``), so training rows stay finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from knotlab.core.demos.library import DemoLibrary
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
+from knotlab.core.selection.landmarks import Landmarks
+from knotlab.core.world.observation import ObservationModel, observe
+
+FEATURE_SET = "knotlab-features-v1"
+_COSTS = ("c1_map", "c2_bend_f", "c3_bend_g")
+_QUAD = tuple(f"{_COSTS[i]}*{_COSTS[j]}" for i in range(3) for j in range(i, 3))
+_MAX_MARGIN_POINTS = 40  # trajectory points per demo used for margins (subsampled evenly)
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """What each feature column means, for one library: saved with every model."""
+
+    feature_set: str
+    library_hash: str
+    action_keys: tuple[str, ...]
+    names: tuple[str, ...]
+    indicator_mask: tuple[bool, ...]
+    phase_steps: tuple[int, ...]
+    phase_temperature: float
+    landmark_hash: str | None = None
+    observation_model: str = ObservationModel.CLOUD.value
+
+    def to_dict(self) -> dict:
+        """JSON-able form (what QModel stores)."""
+        return {
+            "feature_set": self.feature_set,
+            "library_hash": self.library_hash,
+            "action_keys": list(self.action_keys),
+            "names": list(self.names),
+            "indicator_mask": list(self.indicator_mask),
+            "phase_steps": list(self.phase_steps),
+            "phase_temperature": self.phase_temperature,
+            "landmark_hash": self.landmark_hash,
+            "observation_model": self.observation_model,
+        }
+
+
+def _grasp_points(library: DemoLibrary) -> list[np.ndarray]:
+    """Positions where each demo closes a gripper (its grasps), world frame of the demo."""
+    out = []
+    for seg in library:
+        closed = seg.trajectory.closed_gt
+        prev = np.zeros_like(closed)
+        prev[:, 1:] = closed[:, :-1]
+        g_idx, t_idx = np.nonzero(closed & ~prev)
+        pts = seg.trajectory.positions_gt3[g_idx, t_idx]
+        out.append(pts if len(pts) else seg.trajectory.positions_gt3[:, 0])
+    return out
+
+
+def _margin_points(library: DemoLibrary) -> list[np.ndarray]:
+    """Points traced by each demo's working grippers (those that ever close), subsampled."""
+    out = []
+    for seg in library:
+        traj = seg.trajectory
+        active = traj.active_grippers() or (0, 1)
+        pts = np.concatenate([traj.positions_gt3[g] for g in active])
+        if len(pts) > _MAX_MARGIN_POINTS:
+            pts = pts[np.linspace(0, len(pts) - 1, _MAX_MARGIN_POINTS).round().astype(int)]
+        out.append(pts)
+    return out
+
+
+class LibraryFeaturizer:
+    """Computes phi(s, .) for a library; holds the registrar and everything per-library."""
+
+    def __init__(
+        self,
+        library: DemoLibrary,
+        *,
+        registrar: LibraryRegistrar | None = None,
+        params: RegistrationParams = SCAN,
+        phase_temperature: float = 0.25,
+        landmarks: Landmarks | None = None,
+    ) -> None:
+        if not phase_temperature > 0:
+            raise InvalidInputError(f"phase_temperature must be > 0, got {phase_temperature}")
+        self.library = library
+        self.params = params
+        self.registrar = registrar or LibraryRegistrar(params)
+        self.phase_temperature = float(phase_temperature)
+        self.library_hash = library.content_hash()
+        self.observation = ObservationModel.of_library_metadata(library.metadata)
+        self._clouds = library.clouds()
+        self._steps_a = library.step_indices()
+        self._phase_steps = tuple(int(k) for k in np.unique(self._steps_a))
+        self._phase_onehot_ak = (self._steps_a[:, None] == np.array(self._phase_steps)).astype(
+            float
+        )
+        self._grasp_pts = _grasp_points(library)
+        self._margin_pts = _margin_points(library)
+        self.landmarks = landmarks if landmarks is not None and len(landmarks) else None
+        self._landmark_key = (
+            f"landmarks-{self.landmarks.content_hash()}" if self.landmarks is not None else None
+        )
+        landmark_names = (
+            [f"landmark[{i}:{kind}]" for i, kind in enumerate(self.landmarks.kinds)]
+            if self.landmarks is not None
+            else []
+        )
+        n = len(library)
+        names = (
+            list(_COSTS)
+            + list(_QUAD)
+            + ["grasp_dist_m"]
+            + [f"phase_{k}" for k in self._phase_steps]
+            + ["phase_match"]
+            + landmark_names
+            + [f"demo[{key}]" for key in library.keys]
+        )
+        # Columns left unstandardised by the learner: the one-hots, and the landmark softmax
+        # weights (in [0, 1]; most are ~0 for most states, so standardising them would blow a
+        # rarely-near landmark up to hundreds and leave the QP badly conditioned).
+        indicator = [False] * (len(names) - n - len(landmark_names)) + [True] * (
+            len(landmark_names) + n
+        )
+        self._spec = FeatureSpec(
+            FEATURE_SET,
+            self.library_hash,
+            library.keys,
+            tuple(names),
+            tuple(indicator),
+            self._phase_steps,
+            self.phase_temperature,
+            self.landmarks.content_hash() if self.landmarks is not None else None,
+            self.observation.value,
+        )
+
+    @classmethod
+    def for_model(cls, library: DemoLibrary, model) -> LibraryFeaturizer:
+        """The featurizer a QModel was trained with (its landmarks), checked against its spec."""
+        featurizer = cls(
+            library,
+            phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
+            landmarks=getattr(model, "landmarks", None),
+        )
+        model_obs = ObservationModel.parse(
+            model.feature_spec.get("observation_model", ObservationModel.CLOUD.value)
+        )
+        if model_obs is not featurizer.observation:
+            raise InvalidInputError(
+                f"the model was trained on '{model_obs.value}' observations but this library's "
+                f"clouds are '{featurizer.observation.value}': use a library and model made with "
+                "the same observation model"
+            )
+        theirs = model.feature_spec.get("names")
+        if theirs is not None and list(theirs) != list(featurizer.feature_spec.names):
+            raise InvalidInputError(
+                "the model's features do not match this library and code "
+                f"({len(theirs)} model columns, {len(featurizer.feature_spec.names)} here): "
+                "retrain it with `knotlab train`"
+            )
+        return featurizer
+
+    @property
+    def n_actions(self) -> int:
+        """Number of demos (actions)."""
+        return len(self.library)
+
+    @property
+    def feature_spec(self) -> FeatureSpec:
+        """The spec of the columns :meth:`features` returns."""
+        return self._spec
+
+    def spec(self) -> dict:
+        """JSON-able spec (StateFeaturizer protocol)."""
+        return self._spec.to_dict()
+
+    def action_index(self, demo_key: str) -> int:
+        """Row of ``demo_key`` in phi_ad."""
+        return self.library.index_of(demo_key)
+
+    def observe(self, world, *, noise: float = 0.0, seed: int | None = None) -> np.ndarray:
+        """The scene cloud of ``world``'s rope under this library's observation model."""
+        return observe(world, self.observation, noise=noise, seed=seed)
+
+    def scan(self, cloud_n3: np.ndarray, timings: dict | None = None) -> ScanResult:
+        """Register the cloud against every demo (cached demo side)."""
+        return self.registrar.scan(
+            cloud_n3, self._clouds, key=self.library_hash, params=self.params, timings=timings
+        )
+
+    def warped_points(self, scan: ScanResult, points: list[np.ndarray]) -> list[np.ndarray]:
+        """Each demo's points pushed through its own f_a (NaN rows where registration failed)."""
+        out = []
+        for a, pts in enumerate(points):
+            if scan.ok_a[a]:
+                out.append(scan.f(a).evaluate(pts))
+            else:
+                out.append(np.full_like(pts, np.nan))
+        return out
+
+    def features(self, cloud_n3: np.ndarray) -> tuple[np.ndarray, ScanResult]:
+        """phi_ad for every demo, and the scan it came from."""
+        scan = self.scan(cloud_n3)
+        return self.features_from_scan(scan, cloud_n3), scan
+
+    def features_from_scan(self, scan: ScanResult, cloud_n3: np.ndarray) -> np.ndarray:
+        """phi_ad from an existing scan of ``cloud_n3``."""
+        ok = np.asarray(scan.ok_a, dtype=bool)
+        if not ok.any():
+            raise InvalidInputError("registration failed for every demo: no features")
+        c = np.column_stack(
+            [scan.cost("map_fwd") + scan.cost("map_bwd"), scan.cost("bend_f"), scan.cost("bend_g")]
+        )
+        c = _fill_failed(c, ok)
+        quad = np.column_stack([c[:, i] * c[:, j] for i in range(3) for j in range(i, 3)])
+        tree = cKDTree(np.asarray(cloud_n3, dtype=float))
+        grasp = np.empty(self.n_actions)
+        for a, pts in enumerate(self.warped_points(scan, self._grasp_pts)):
+            grasp[a] = tree.query(pts)[0].max() if ok[a] else np.nan
+        grasp = _fill_failed(grasp[:, None], ok)
+        phase_k = self.phase(scan)
+        phase_ak = np.broadcast_to(phase_k, (self.n_actions, phase_k.size))
+        match = self._phase_onehot_ak @ phase_k
+        columns = [c, quad, grasp, phase_ak, match]
+        if self.landmarks is not None:
+            near_l = self.landmark_weights(cloud_n3)
+            columns.append(np.broadcast_to(near_l, (self.n_actions, near_l.size)))
+        return np.column_stack([*columns, np.eye(self.n_actions)])
+
+    def landmark_weights(self, cloud_n3: np.ndarray) -> np.ndarray:
+        """Softmax over landmarks of the relative registration cost (all zero if none register)."""
+        assert self.landmarks is not None
+        scan = self.registrar.scan(
+            cloud_n3,
+            list(self.landmarks.clouds),
+            key=self._landmark_key,
+            params=self.params,
+        )
+        cost = np.asarray(scan.nn_cost_a, dtype=float)
+        if not np.any(np.isfinite(cost)):
+            return np.zeros(len(cost))
+        return _soft_nearest(cost, self.phase_temperature)
+
+    def phase(self, scan: ScanResult) -> np.ndarray:
+        """Soft phase: softmax over demos of -(cost/min cost - 1)/T, summed per demo step."""
+        return _soft_nearest(scan.nn_cost_a, self.phase_temperature) @ self._phase_onehot_ak
+
+    def margins(self, scan: ScanResult, expert_action: int) -> np.ndarray:
+        """m(a*, a): mean closest-point distance (m) from a's warped trajectory to a*'s."""
+        warped = self.warped_points(scan, self._margin_pts)
+        ref = warped[expert_action]
+        if not np.all(np.isfinite(ref)):
+            raise InvalidInputError(
+                f"registration of the expert's demo {self.library.keys[expert_action]} failed"
+            )
+        tree = cKDTree(ref)
+        m = np.empty(self.n_actions)
+        finite_max = 0.0
+        for a, pts in enumerate(warped):
+            if np.all(np.isfinite(pts)):
+                m[a] = tree.query(pts)[0].mean()
+                finite_max = max(finite_max, m[a])
+            else:
+                m[a] = np.nan
+        m[~np.isfinite(m)] = finite_max  # a failed demo is as wrong as the most different one
+        m[expert_action] = 0.0
+        return m
+
+
+def _soft_nearest(cost_a: np.ndarray, temperature: float) -> np.ndarray:
+    """Softmax of -(cost / min cost - 1) / T over finite costs (scale-free; failed -> 0)."""
+    cost = np.asarray(cost_a, dtype=float)
+    finite = np.isfinite(cost)
+    rel = np.full_like(cost, np.inf)
+    c_min = max(cost[finite].min(), 1e-12)
+    rel[finite] = cost[finite] / c_min - 1.0
+    logits = -rel / temperature
+    w = np.exp(logits - logits[finite].max())
+    w[~finite] = 0.0
+    return w / w.sum()
+
+
+def _fill_failed(values_ac: np.ndarray, ok_a: np.ndarray) -> np.ndarray:
+    """Replace rows of failed demos (and any non-finite value) by the column's worst value."""
+    out = np.array(values_ac, dtype=float)
+    good = ok_a[:, None] & np.isfinite(out)
+    worst = np.where(good, out, -np.inf).max(axis=0)
+    worst[~np.isfinite(worst)] = 0.0
+    return np.where(good, out, worst)

@@ -1,0 +1,319 @@
+"""Demonstration-selection policies: nearest neighbour, greedy Q, lookahead beam search, oracle.
+
+Every policy answers ``choose(ctx) -> Decision`` for one state. Policies that simulate candidate
+actions (lookahead, oracle) leave the world in the state they found it and hand back the outcome
+of the chosen action, so the episode does not simulate it twice.
+Shape suffix: a = demos (actions).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration import ScanResult
+from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
+from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.selection.qmodel import QModel
+
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import RopeWorld
+
+
+@dataclass
+class StepContext:
+    """Everything a policy may look at to choose the next demo."""
+
+    world: RopeWorld
+    cloud_n3: np.ndarray
+    scan: ScanResult
+    featurizer: LibraryFeaturizer
+    transferer: DemoTransferer
+    step_index: int
+    steps_left: int
+    _phi_ad: np.ndarray | None = None
+
+    @property
+    def phi_ad(self) -> np.ndarray:
+        """Features of every demo in this state (computed once, on first use)."""
+        if self._phi_ad is None:
+            self._phi_ad = self.featurizer.features_from_scan(self.scan, self.cloud_n3)
+        return self._phi_ad
+
+
+@dataclass
+class Decision:
+    """The chosen demo, every demo's score (higher = better) and what the search saw."""
+
+    action: int
+    scores_a: np.ndarray
+    info: dict = field(default_factory=dict)
+    outcome: ActionOutcome | None = None  # set when the policy already simulated the choice
+
+
+class Policy(ABC):
+    """Chooses which library demo to transfer in a state."""
+
+    name: str = "policy"
+
+    @abstractmethod
+    def choose(self, ctx: StepContext) -> Decision:
+        """Pick a demo for the state in ``ctx``."""
+
+
+def _masked(scores_a: np.ndarray, ok_a: np.ndarray) -> np.ndarray:
+    out = np.where(np.asarray(ok_a, bool), scores_a, -np.inf)
+    out[~np.isfinite(out)] = -np.inf
+    return out
+
+
+class NearestNeighbourPolicy(Policy):
+    """Schulman et al.: the demo with the lowest bidirectional registration cost."""
+
+    name = "nn"
+
+    def choose(self, ctx: StepContext) -> Decision:
+        """argmin_a nn_cost(a)."""
+        scores = _masked(-ctx.scan.nn_cost_a, ctx.scan.ok_a)
+        return Decision(int(np.argmax(scores)), scores)
+
+
+class GreedyPolicy(Policy):
+    """argmax_a Q(s, a) of a learned model."""
+
+    name = "greedy"
+
+    def __init__(self, model: QModel) -> None:
+        self.model = model
+
+    def choose(self, ctx: StepContext) -> Decision:
+        """argmax_a Q(s, a) over demos whose registration succeeded."""
+        q = _masked(self.model.q(ctx.phi_ad), ctx.scan.ok_a)
+        return Decision(int(np.argmax(q)), q)
+
+
+@dataclass
+class _Node:
+    snapshot: object
+    cloud_n3: np.ndarray
+    q_a: np.ndarray
+    root_action: int  # -1 at the root
+
+
+class LookaheadPolicy(Policy):
+    """Beam search in simulation over Q (lfd_facts section 6), stopping at the first knot.
+
+    Each level expands the ``width`` best (node, action) pairs by Q (each node offering its best
+    ``width``, or ``width // 2`` (at least 1) once three or more nodes are open), simulating every
+    expansion from the node's snapshot. A knot ends the search at once. Otherwise a child is
+    valued V(s') = max_a' Q(s', a'). Back-up (fixing the original, which subtracted max child
+    value from less-expanded children and so was only right for positive values): a root action
+    is valued by the best child reached at the *deepest* level any branch reached; only root
+    actions that reached that level compete, so values of different depths (and signs) are never
+    compared. Ties and the no-expansion case fall back to the root's Q. Children of the episode's
+    last action are not valued (only a knot counts there), which saves a scan per expansion.
+    """
+
+    def __init__(self, model: QModel, depth: int = 1, width: int = 10) -> None:
+        if depth < 1 or width < 1:
+            raise ValueError(f"lookahead needs depth >= 1 and width >= 1, got {depth}, {width}")
+        self.model = model
+        self.depth = depth
+        self.width = width
+        self.name = f"la{depth}x{width}"
+
+    def _q(self, featurizer: LibraryFeaturizer, cloud_n3: np.ndarray) -> np.ndarray:
+        phi, scan = featurizer.features(cloud_n3)
+        return _masked(self.model.q(phi), scan.ok_a)
+
+    def choose(self, ctx: StepContext) -> Decision:
+        """Beam search from the current state; returns the best root action."""
+        world = ctx.world
+        root_snapshot = world.snapshot()
+        root_q = _masked(self.model.q(ctx.phi_ad), ctx.scan.ok_a)
+        frontier = [_Node(root_snapshot, ctx.cloud_n3, root_q, -1)]
+        backed: dict[int, tuple[int, float]] = {}  # root action -> (depth reached, value)
+        root_outcomes: dict[int, ActionOutcome] = {}
+        expansions = 0
+        t0 = time.perf_counter()
+        max_depth = min(self.depth, ctx.steps_left)
+        try:
+            for level in range(max_depth):
+                per_node = self.width if len(frontier) < 3 else max(1, self.width // 2)
+                candidates = []
+                for node_i, node in enumerate(frontier):
+                    order = np.argsort(-node.q_a, kind="stable")[:per_node]
+                    candidates += [
+                        (float(node.q_a[a]), node_i, int(a))
+                        for a in order
+                        if np.isfinite(node.q_a[a])
+                    ]
+                candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
+                next_frontier = []
+                for _, node_i, a in candidates[: self.width]:
+                    node = frontier[node_i]
+                    world.restore(node.snapshot)
+                    outcome = apply_demo(world, ctx.transferer, node.cloud_n3, a)
+                    expansions += 1
+                    root_a = a if node.root_action < 0 else node.root_action
+                    if node.root_action < 0:
+                        root_outcomes[a] = outcome
+                    if outcome.knot:
+                        return self._decide(
+                            root_a, root_q, backed, root_outcomes, expansions, t0, goal=True
+                        )
+                    # After the episode's last action only a knot counts: a non-knot child is
+                    # a failure whatever it looks like, so its value is not worth a scan.
+                    at_horizon = level + 1 >= ctx.steps_left
+                    if (
+                        at_horizon
+                        or outcome.exploded
+                        or not np.all(np.isfinite(outcome.nodes_after_k3))
+                    ):
+                        value = -np.inf
+                        child_q = None
+                    else:
+                        child_cloud = ctx.featurizer.observe(world)
+                        child_q = self._q(ctx.featurizer, child_cloud)
+                        value = float(np.max(child_q))
+                    depth_reached = level + 1
+                    prev = backed.get(root_a)
+                    if (
+                        prev is None
+                        or depth_reached > prev[0]
+                        or (depth_reached == prev[0] and value > prev[1])
+                    ):
+                        backed[root_a] = (depth_reached, value)
+                    if child_q is not None and level + 1 < max_depth:
+                        next_frontier.append(
+                            _Node(outcome.snapshot_after, child_cloud, child_q, root_a)
+                        )
+                frontier = next_frontier
+                if not frontier:
+                    break
+        finally:
+            world.restore(root_snapshot)
+        return self._decide(None, root_q, backed, root_outcomes, expansions, t0, goal=False)
+
+    def _decide(self, goal_action, root_q, backed, root_outcomes, expansions, t0, goal):
+        info = {"expansions": expansions, "goal_found": goal, "search_s": time.perf_counter() - t0}
+        if goal_action is not None:
+            action = goal_action
+        else:
+            deepest = max((d for d, _ in backed.values()), default=0)
+            contenders = {a: v for a, (d, v) in backed.items() if d == deepest}
+            finite = {a: v for a, v in contenders.items() if np.isfinite(v)}
+            if finite:
+                best = max(finite.values())
+                tied = [a for a, v in finite.items() if v == best]
+                action = max(tied, key=lambda a: root_q[a])
+            else:
+                action = int(np.argmax(root_q))
+        scores = np.array(root_q, dtype=float)
+        for a, (_, v) in backed.items():
+            scores[a] = v
+        if goal:
+            scores[action] = np.inf
+        info["backed_up"] = {int(a): (int(d), float(v)) for a, (d, v) in backed.items()}
+        return Decision(int(action), scores, info, root_outcomes.get(int(action)))
+
+
+class SimulationOraclePolicy(Policy):
+    """The library's ceiling estimate: try the ``width`` lowest-cost demos in simulation.
+
+    Keeps the candidate reaching the highest topological stage (ties: lower registration cost),
+    stopping at the first knot (transfer_notes.md, "greedy top-10 oracle"). Uses the knot
+    stage, so it is task-specific: a yardstick, never a feature.
+    """
+
+    name = "oracle"
+
+    def __init__(self, width: int = 10) -> None:
+        self.width = width
+
+    def choose(self, ctx: StepContext) -> Decision:
+        """Simulate the top-``width`` demos by cost; keep the best stage."""
+        world = ctx.world
+        root = world.snapshot()
+        cost = np.where(ctx.scan.ok_a, ctx.scan.nn_cost_a, np.inf)
+        order = [
+            int(a) for a in np.argsort(cost, kind="stable")[: self.width] if np.isfinite(cost[a])
+        ]
+        best: tuple[int, int, ActionOutcome] | None = None  # (stage, -rank, outcome)
+        stages = {}
+        t0 = time.perf_counter()
+        try:
+            for rank, a in enumerate(order):
+                world.restore(root)
+                outcome = apply_demo(world, ctx.transferer, ctx.cloud_n3, a)
+                stage = -1 if outcome.exploded else outcome.stage
+                stages[a] = stage
+                if best is None or stage > best[0]:
+                    best = (stage, rank, outcome)
+                if outcome.knot:
+                    break
+        finally:
+            world.restore(root)
+        scores = np.full(cost.shape, -np.inf)
+        for a, s in stages.items():
+            scores[a] = s
+        info = {"expansions": len(stages), "search_s": time.perf_counter() - t0}
+        if best is None:
+            return Decision(int(np.argmin(cost)), scores, info)
+        return Decision(best[2].plan.demo_index, scores, info, best[2])
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """A policy name parsed once: what it needs and what it costs (the CLI, bench and app)."""
+
+    name: str
+    kind: str  # nn | greedy | lookahead | oracle
+    needs_model: bool  # ranks demos with a learned QModel
+    simulates: bool  # simulates candidates at every step (slow: lookahead, oracle)
+    depth: int = 0
+    width: int = 0
+
+    def build(self, model: QModel | None = None) -> Policy:
+        """The policy object; a learned one needs ``model``."""
+        if self.needs_model and model is None:
+            raise InvalidInputError(f"policy {self.name!r} needs a trained QModel")
+        if self.kind == "nn":
+            return NearestNeighbourPolicy()
+        if self.kind == "oracle":
+            return SimulationOraclePolicy()
+        if self.kind == "greedy":
+            return GreedyPolicy(model)
+        return LookaheadPolicy(model, self.depth, self.width)
+
+
+_LOOKAHEAD_NAME = re.compile(r"la([1-9][0-9]*)x([1-9][0-9]*)")
+_FIXED_POLICIES = {
+    "nn": PolicyConfig("nn", "nn", needs_model=False, simulates=False),
+    "greedy": PolicyConfig("greedy", "greedy", needs_model=True, simulates=False),
+    "oracle": PolicyConfig("oracle", "oracle", needs_model=False, simulates=True),
+}
+
+
+def policy_config(name: str) -> PolicyConfig:
+    """The config of a policy name: nn, greedy, la<depth>x<width> (e.g. la2x5) or oracle."""
+    if name in _FIXED_POLICIES:
+        return _FIXED_POLICIES[name]
+    match = _LOOKAHEAD_NAME.fullmatch(name)
+    if match is None:
+        raise InvalidInputError(
+            f"unknown policy {name!r}; expected nn, greedy, la<D>x<W> (e.g. la2x5) or oracle"
+        )
+    depth, width = int(match.group(1)), int(match.group(2))
+    return PolicyConfig(name, "lookahead", True, True, depth, width)
+
+
+def make_policy(name: str, model: QModel | None = None) -> Policy:
+    """Policy by bench name: nn, greedy, la<depth>x<width>, oracle."""
+    return policy_config(name).build(model)

@@ -1,0 +1,149 @@
+"""The learned Q-function: Q(s, a) = w . standardise(phi(s, a)) + w0, its file and its hash.
+
+Shape suffixes: a = actions (library demos), d = feature dimension.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from knotlab.core.errors import CorruptFileError, InvalidInputError
+from knotlab.core.hashing import ContentHash
+from knotlab.core.selection.landmarks import Landmarks
+
+QMODEL_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class QModel:
+    """A learned linear Q-function over a saved feature spec: Q = w . standardise(phi) + w0."""
+
+    weights_d: np.ndarray
+    bias: float
+    feature_mean_d: np.ndarray
+    feature_scale_d: np.ndarray
+    feature_spec: dict
+    hyperparameters: dict
+    metrics: dict = field(default_factory=dict)
+    landmarks: Landmarks | None = None  # landmark states the features refer to (saved along)
+
+    def __post_init__(self) -> None:
+        if self.landmarks is not None and self.feature_spec.get("landmark_hash") != (
+            self.landmarks.content_hash()
+        ):
+            raise InvalidInputError("QModel landmarks do not match its feature spec")
+        w = np.asarray(self.weights_d, dtype=float)
+        mean = np.asarray(self.feature_mean_d, dtype=float)
+        scale = np.asarray(self.feature_scale_d, dtype=float)
+        if w.ndim != 1 or mean.shape != w.shape or scale.shape != w.shape:
+            raise InvalidInputError(
+                f"QModel arrays disagree: weights {w.shape}, mean {mean.shape}, scale {scale.shape}"
+            )
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(mean)) and np.isfinite(self.bias)):
+            raise InvalidInputError("QModel weights must be finite")
+        if not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+            raise InvalidInputError("QModel feature scales must be finite and positive")
+        object.__setattr__(self, "weights_d", w)
+        object.__setattr__(self, "feature_mean_d", mean)
+        object.__setattr__(self, "feature_scale_d", scale)
+        object.__setattr__(self, "bias", float(self.bias))
+
+    @property
+    def n_features(self) -> int:
+        """Feature dimension d."""
+        return int(self.weights_d.shape[0])
+
+    def q(self, phi_ad: np.ndarray) -> np.ndarray:
+        """Q-values of every action: phi_ad -> q_a (non-finite feature rows give -inf)."""
+        phi = np.asarray(phi_ad, dtype=float)
+        if phi.ndim != 2 or phi.shape[1] != self.n_features:
+            raise InvalidInputError(
+                f"phi_ad must have shape (A, {self.n_features}), got {phi.shape}"
+            )
+        with np.errstate(invalid="ignore"):
+            q = ((phi - self.feature_mean_d) / self.feature_scale_d) @ self.weights_d + self.bias
+        q[~np.isfinite(q)] = -np.inf
+        return q
+
+    def content_hash(self) -> str:
+        """Stable hash of weights, standardisation and feature spec (identifies a model)."""
+        h = ContentHash()
+        for arr in (self.weights_d, self.feature_mean_d, self.feature_scale_d):
+            h.array(arr, dtype="<f8")
+        h.array(np.float64(self.bias)).json(self.feature_spec)
+        if self.landmarks is not None:  # (absent for models without landmarks: hashes unchanged)
+            h.text(self.landmarks.content_hash())
+        return h.hexdigest()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model to a versioned .npz file; returns the path."""
+        path = Path(path)
+        meta = {
+            "format": "knotlab-qmodel",
+            "version": QMODEL_FORMAT_VERSION,
+            "bias": self.bias,
+            "feature_spec": self.feature_spec,
+            "hyperparameters": self.hyperparameters,
+            "metrics": self.metrics,
+            "hash": self.content_hash(),
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                weights_d=self.weights_d,
+                feature_mean_d=self.feature_mean_d,
+                feature_scale_d=self.feature_scale_d,
+                meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+                **(self.landmarks.to_arrays() if self.landmarks is not None else {}),
+            )
+        tmp.replace(path)  # atomic: a crash never leaves a half-written model
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> QModel:
+        """Read and validate a model written by :meth:`save`."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: np.array(data[k]) for k in data.files}
+        except FileNotFoundError:
+            raise
+        except Exception as exc:
+            raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
+        missing = {"weights_d", "feature_mean_d", "feature_scale_d", "meta"} - set(arrays)
+        if missing:
+            raise CorruptFileError(f"{path}: model file lacks {sorted(missing)}")
+        try:
+            meta = json.loads(arrays["meta"].tobytes().decode())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise CorruptFileError(f"{path}: model metadata is not valid JSON") from exc
+        if meta.get("format") != "knotlab-qmodel":
+            raise CorruptFileError(f"{path}: not a knotlab model (format {meta.get('format')!r})")
+        if meta.get("version") != QMODEL_FORMAT_VERSION:
+            raise CorruptFileError(
+                f"{path}: model format version {meta.get('version')} is not supported "
+                f"(this knotlab reads version {QMODEL_FORMAT_VERSION})"
+            )
+        try:
+            landmarks = Landmarks.from_arrays(arrays) if "landmark_points_n3" in arrays else None
+            model = cls(
+                arrays["weights_d"],
+                meta["bias"],
+                arrays["feature_mean_d"],
+                arrays["feature_scale_d"],
+                meta["feature_spec"],
+                meta["hyperparameters"],
+                meta.get("metrics", {}),
+                landmarks,
+            )
+        except (KeyError, InvalidInputError) as exc:
+            raise CorruptFileError(f"{path}: invalid model contents ({exc})") from exc
+        if meta.get("hash") != model.content_hash():
+            raise CorruptFileError(f"{path}: content hash mismatch (file altered or truncated)")
+        return model

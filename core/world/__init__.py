@@ -1,0 +1,1 @@
+"""The rope world: simulation, rope geometry, knot test, stages, trajectories, observation."""

@@ -1,0 +1,737 @@
+"""RopeWorld: a PyBullet rope (capsule chain) on a table, moved by two kinematic point grippers.
+
+Frames: metres and seconds, right-handed, z up, table top at z = 0.
+Shape suffixes: l = rope links (capsules), k = rope nodes (l + 1 capsule end points),
+g = grippers (left, right), n = cloud points, 3/4 = xyz/quaternion xyzw.
+
+Model (measured in shared/reference/rope_sim_notes.md): N separate rigid capsules joined end to end
+by point-to-point constraints; neighbours do not collide, every other pair does. A gripper is a
+point-to-point constraint from the grasped link to the world whose pivot follows the gripper.
+
+Determinism: every stepping call (``execute``, ``settle``) first rebuilds the PyBullet world from a
+plain state record (poses and velocities of every link). A snapshot is that record, so
+restore-then-execute rebuilds from exactly the same numbers as the uninterrupted run and is
+bit-identical to it; snapshots are also picklable and portable between worlds and processes.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.failures import FailureKind
+from knotlab.core.voxels import voxel_groups
+from knotlab.core.world.rope import as_nodes, resample_by_arc_length, rope_length
+from knotlab.core.world.trajectory import GRIPPERS, GripperTrajectory
+
+
+def _import_pybullet_quietly():
+    """Import pybullet with its C-level "build time" banner sent to /dev/null.
+
+    The banner is printed by the extension's init straight to the process's stdout/stderr file
+    descriptors, so Python-level redirection cannot catch it: descriptors 1 and 2 are swapped for
+    the import, and C's stdio buffers are flushed (into /dev/null) before they are swapped back.
+    An import error is raised after the swap back, so it is still seen.
+    """
+    import ctypes
+    import os
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in saved:
+            os.dup2(devnull, fd)
+        import pybullet
+
+        ctypes.CDLL(None).fflush(None)
+    finally:
+        for fd, copy in saved.items():
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(devnull)
+    return pybullet
+
+
+p = _import_pybullet_quietly()
+
+
+@dataclass(frozen=True)
+class RopeParams:
+    """Every physical and numerical setting of the rope and the solver."""
+
+    n_links: int = 40
+    length: float = 1.0  # m
+    radius: float = 0.01  # m
+    mass: float = 0.2  # kg, whole rope
+    friction: float = 0.8  # lateral, rope and table
+    linear_damping: float = 0.5
+    angular_damping: float = 0.5
+    joint_max_force: float = 1000.0  # N, link-to-link p2p constraints
+    joint_erp: float = 0.8
+    timestep: float = 1.0 / 240.0  # s
+    solver_iterations: int = 20
+    gravity: float = 9.81  # m/s^2
+    # Accepted mismatch between the given rope's arc length and `length` (fraction).
+    length_tolerance: float = 0.1
+    # Blow-up detection: any link faster than this (m/s) or joints gaping more than
+    # `stretch_limit` link lengths ends an execution (peaks in normal use: ~0.5 m/s, 13 %).
+    explode_speed: float = 20.0
+    stretch_limit: float = 0.5
+    check_every: int = 4  # steps between blow-up / stretch checks
+
+    def __post_init__(self) -> None:
+        if int(self.n_links) != self.n_links or self.n_links < 2:
+            raise InvalidInputError(
+                f"RopeParams.n_links must be an integer >= 2, got {self.n_links}"
+            )
+        for name in ("length", "radius", "mass", "timestep", "joint_max_force", "explode_speed"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InvalidInputError(f"RopeParams.{name} must be positive, got {value}")
+        if 2 * self.radius > self.link_length:
+            raise InvalidInputError(
+                f"RopeParams: diameter {2 * self.radius} exceeds link length {self.link_length}"
+            )
+        if self.solver_iterations < 1 or self.check_every < 1:
+            raise InvalidInputError("RopeParams: solver_iterations and check_every must be >= 1")
+
+    @property
+    def link_length(self) -> float:
+        """Length of one capsule link (m)."""
+        return self.length / self.n_links
+
+
+@dataclass(frozen=True)
+class GripperParams:
+    """Point-gripper settings: grasp reach, speed caps, grip force, settling after a trajectory."""
+
+    grasp_radius: float = 0.03  # m, from gripper point to a link's axis
+    max_speed: float = 0.5  # m/s, 3-D speed cap of each gripper point
+    max_descent_speed: float = 0.25  # m/s, cap on downward speed (lowering is done gently)
+    grip_force: float = 30.0  # N, max force of the gripper constraint
+    settle_time: float = 1.0  # s after both grippers release at the end of `execute`
+    rest_speed: float = 0.005  # m/s: settling stops early once every link is slower than this
+
+    def __post_init__(self) -> None:
+        for name in ("grasp_radius", "max_speed", "max_descent_speed", "grip_force"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InvalidInputError(f"GripperParams.{name} must be positive, got {value}")
+        if self.settle_time < 0 or self.rest_speed < 0:
+            raise InvalidInputError("GripperParams: settle_time and rest_speed must be >= 0")
+
+
+@dataclass(frozen=True)
+class ExecutionResult:
+    """Outcome of one `RopeWorld.execute` call."""
+
+    ok: bool
+    failure: str | None  # "misgrasp:left", "exploded", "stretch", or None
+    misgrasps: tuple[str, ...]  # gripper name per close that found no link
+    grasps: tuple[tuple[str, int], ...]  # (gripper, link index) per successful close
+    max_stretch: float  # largest joint gap seen, as a fraction of the link length
+    sim_steps: int
+    sim_time: float  # s simulated
+    wall_time: float = field(default=0.0, compare=False)  # s of wall clock
+
+    @property
+    def failure_kind(self) -> FailureKind | None:
+        """The kind of ``failure``: EXPLODED (explosion or over-stretch), MISGRASP, or None."""
+        if self.failure is None:
+            return None
+        if self.failure in ("exploded", "stretch"):
+            return FailureKind.EXPLODED
+        return FailureKind.MISGRASP
+
+
+@dataclass(frozen=True, eq=False)
+class SimSnapshot:
+    """Full dynamic state of the rope: enough to rebuild the world bit-for-bit."""
+
+    positions_l3: np.ndarray
+    quaternions_l4: np.ndarray  # xyzw
+    linear_velocities_l3: np.ndarray
+    angular_velocities_l3: np.ndarray
+    sim_time: float
+    params: RopeParams
+
+    def equals(self, other: SimSnapshot) -> bool:
+        """Exact equality of every array and the parameters."""
+        return (
+            self.params == other.params
+            and self.sim_time == other.sim_time
+            and all(
+                np.array_equal(getattr(self, f), getattr(other, f))
+                for f in (
+                    "positions_l3",
+                    "quaternions_l4",
+                    "linear_velocities_l3",
+                    "angular_velocities_l3",
+                )
+            )
+        )
+
+
+def _quat_to_axes(quats_l4: np.ndarray) -> np.ndarray:
+    """Rotation matrices (L, 3, 3) from xyzw quaternions."""
+    x, y, z, w = (quats_l4[:, i] for i in range(4))
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
+def _quat_z_to(dirs_l3: np.ndarray) -> np.ndarray:
+    """Shortest-arc xyzw quaternions rotating +z onto each unit direction."""
+    cos = np.clip(dirs_l3[:, 2], -1.0, 1.0)
+    axis = np.stack([-dirs_l3[:, 1], dirs_l3[:, 0], np.zeros(len(dirs_l3))], axis=1)
+    norm = np.linalg.norm(axis, axis=1)
+    # Straight down has no unique axis: flip about x.
+    axis = np.where(norm[:, None] > 1e-12, axis / np.maximum(norm, 1e-300)[:, None], [1.0, 0, 0])
+    half = 0.5 * np.arccos(cos)
+    return np.concatenate([axis * np.sin(half)[:, None], np.cos(half)[:, None]], axis=1)
+
+
+def _link_ends(state: SimSnapshot) -> tuple[np.ndarray, np.ndarray]:
+    """World positions of each link's lower (-z) and upper (+z) pivot, (L, 3) each."""
+    half = 0.5 * state.params.link_length
+    axis_l3 = _quat_to_axes(state.quaternions_l4)[:, :, 2]
+    return state.positions_l3 - half * axis_l3, state.positions_l3 + half * axis_l3
+
+
+def _point_segment_distance(q_3: np.ndarray, a_l3: np.ndarray, b_l3: np.ndarray) -> np.ndarray:
+    """Distance from point q to each segment [a_l, b_l]."""
+    d = b_l3 - a_l3
+    t = np.clip(np.einsum("li,li->l", q_3 - a_l3, d) / np.einsum("li,li->l", d, d), 0.0, 1.0)
+    return np.linalg.norm(a_l3 + t[:, None] * d - q_3, axis=1)
+
+
+def _disconnect(client: int, alive: list[bool]) -> None:
+    if alive[0]:
+        alive[0] = False
+        p.disconnect(physicsClientId=client)
+
+
+class RopeWorld:
+    """A table, one rope and two point grippers in a private PyBullet DIRECT client."""
+
+    def __init__(
+        self, params: RopeParams | None = None, gripper: GripperParams | None = None
+    ) -> None:
+        self.params = params if params is not None else RopeParams()
+        self.gripper = gripper if gripper is not None else GripperParams()
+        self._client = p.connect(p.DIRECT)
+        if self._client < 0:
+            raise RuntimeError("pybullet could not open a DIRECT physics client")
+        self._alive = [True]
+        # Disconnect even if the user forgets close(): a leaked client keeps its memory.
+        self._finalizer = weakref.finalize(self, _disconnect, self._client, self._alive)
+        self._links: list[int] = []
+        self._pending: SimSnapshot | None = None
+        self._broken: str | None = None
+        self.reset(self._straight_nodes())
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        """Disconnect the physics client; the world cannot be used afterwards."""
+        self._finalizer()
+
+    def __enter__(self) -> RopeWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _require_open(self) -> None:
+        if not self._alive[0]:
+            raise InvalidInputError("RopeWorld is closed")
+
+    # ------------------------------------------------------------------ state
+    def _straight_nodes(self) -> np.ndarray:
+        nodes = np.zeros((self.params.n_links + 1, 3))
+        nodes[:, 0] = np.linspace(-self.params.length / 2, self.params.length / 2, len(nodes))
+        nodes[:, 2] = self.params.radius
+        return nodes
+
+    def _check_nodes(self, rope_nodes_k3: np.ndarray) -> np.ndarray:
+        prm = self.params
+        nodes = as_nodes(rope_nodes_k3, min_nodes=3)
+        length = rope_length(nodes)
+        if abs(length - prm.length) > prm.length_tolerance * prm.length:
+            raise InvalidInputError(
+                f"rope nodes span {length:.4f} m of arc length but RopeParams.length is "
+                f"{prm.length} m (+-{prm.length_tolerance:.0%}): wrong scale or units?"
+            )
+        if nodes.shape[0] == prm.n_links + 1:
+            seg_m = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
+            worst = int(np.argmax(seg_m))
+            if seg_m[worst] > 1.25 * prm.link_length:
+                raise InvalidInputError(
+                    f"rope segment {worst} is {seg_m[worst]:.4f} m long; links are "
+                    f"{prm.link_length:.4f} m (at most 25 % stretch allowed)"
+                )
+        if nodes[:, 2].min() < -0.05:
+            raise InvalidInputError(
+                f"rope nodes reach z = {nodes[:, 2].min():.3f} m, below the table top at z = 0"
+            )
+        return nodes
+
+    def reset(self, rope_nodes_k3: np.ndarray) -> None:
+        """Place the rope at rest along the given polyline (any K >= 3, resampled by arc length)."""
+        self._require_open()
+        prm = self.params
+        nodes = resample_by_arc_length(self._check_nodes(rope_nodes_k3), prm.n_links + 1)
+        # The rope rests on the table: centre lines below one radius would start inside it.
+        nodes[:, 2] = np.maximum(nodes[:, 2], prm.radius)
+        seg_l3 = np.diff(nodes, axis=0)
+        dirs_l3 = seg_l3 / np.linalg.norm(seg_l3, axis=1, keepdims=True)
+        n = prm.n_links
+        self._pending = SimSnapshot(
+            positions_l3=0.5 * (nodes[:-1] + nodes[1:]),
+            quaternions_l4=_quat_z_to(dirs_l3),
+            linear_velocities_l3=np.zeros((n, 3)),
+            angular_velocities_l3=np.zeros((n, 3)),
+            sim_time=0.0,
+            params=prm,
+        )
+        self._broken = None
+
+    def _read_state(self) -> SimSnapshot:
+        cid = self._client
+        pos, quat, lin, ang = [], [], [], []
+        for body in self._links:
+            xyz, q = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+            v, w = p.getBaseVelocity(body, physicsClientId=cid)
+            pos.append(xyz)
+            quat.append(q)
+            lin.append(v)
+            ang.append(w)
+        return SimSnapshot(
+            positions_l3=np.array(pos),
+            quaternions_l4=np.array(quat),
+            linear_velocities_l3=np.array(lin),
+            angular_velocities_l3=np.array(ang),
+            sim_time=self._sim_time,
+            params=self.params,
+        )
+
+    def _state(self) -> SimSnapshot:
+        self._require_open()
+        return self._pending if self._pending is not None else self._read_state()
+
+    def snapshot(self) -> SimSnapshot:
+        """The current full state (a plain, picklable record)."""
+        return self._state()
+
+    def restore(self, snapshot: SimSnapshot) -> None:
+        """Return to a snapshot; what follows is bit-identical to the run that made it."""
+        self._require_open()
+        if not isinstance(snapshot, SimSnapshot):
+            raise InvalidInputError(f"restore expects a SimSnapshot, got {type(snapshot).__name__}")
+        if snapshot.params != self.params:
+            raise InvalidInputError("snapshot was taken with different RopeParams than this world")
+        self._pending = snapshot
+        self._broken = None if np.all(np.isfinite(snapshot.positions_l3)) else "exploded"
+
+    def rope_nodes(self) -> np.ndarray:
+        """Rope node positions (n_links + 1, 3): the capsule end points (joints averaged)."""
+        lower_l3, upper_l3 = _link_ends(self._state())
+        joints = 0.5 * (upper_l3[:-1] + lower_l3[1:])
+        return np.concatenate([lower_l3[:1], joints, upper_l3[-1:]], axis=0)
+
+    @property
+    def sim_time(self) -> float:
+        """Simulated seconds since the last reset."""
+        return self._state().sim_time
+
+    # ------------------------------------------------------------------ building
+    def _build(self, state: SimSnapshot) -> None:
+        """Rebuild the PyBullet world from scratch in exactly `state` (see module docstring)."""
+        cid, prm = self._client, self.params
+        p.resetSimulation(physicsClientId=cid)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=prm.timestep,
+            numSubSteps=0,
+            numSolverIterations=prm.solver_iterations,
+            deterministicOverlappingPairs=1,
+            physicsClientId=cid,
+        )
+        p.setGravity(0, 0, -prm.gravity, physicsClientId=cid)
+        plane = p.createCollisionShape(p.GEOM_PLANE, physicsClientId=cid)
+        table = p.createMultiBody(0, plane, physicsClientId=cid)
+        p.changeDynamics(table, -1, lateralFriction=prm.friction, physicsClientId=cid)
+        half = 0.5 * prm.link_length
+        shape = p.createCollisionShape(
+            p.GEOM_CAPSULE,
+            radius=prm.radius,
+            height=max(prm.link_length - 2 * prm.radius, 1e-6),
+            physicsClientId=cid,
+        )
+        link_mass = prm.mass / prm.n_links
+        links = []
+        for i in range(prm.n_links):
+            body = p.createMultiBody(
+                link_mass,
+                shape,
+                basePosition=state.positions_l3[i].tolist(),
+                baseOrientation=state.quaternions_l4[i].tolist(),
+                useMaximalCoordinates=False,
+                physicsClientId=cid,
+            )
+            p.changeDynamics(
+                body,
+                -1,
+                lateralFriction=prm.friction,
+                rollingFriction=0.0,
+                spinningFriction=0.0,
+                restitution=0.0,
+                linearDamping=prm.linear_damping,
+                angularDamping=prm.angular_damping,
+                activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING,
+                physicsClientId=cid,
+            )
+            p.resetBaseVelocity(
+                body,
+                state.linear_velocities_l3[i].tolist(),
+                state.angular_velocities_l3[i].tolist(),
+                physicsClientId=cid,
+            )
+            links.append(body)
+        for a, b in itertools.pairwise(links):
+            c = p.createConstraint(
+                a,
+                -1,
+                b,
+                -1,
+                p.JOINT_POINT2POINT,
+                [0, 0, 0],
+                [0, 0, half],
+                [0, 0, -half],
+                physicsClientId=cid,
+            )
+            p.changeConstraint(
+                c, maxForce=prm.joint_max_force, erp=prm.joint_erp, physicsClientId=cid
+            )
+            p.setCollisionFilterPair(a, b, -1, -1, 0, physicsClientId=cid)
+        self._links = links
+        self._sim_time = state.sim_time
+        self._pending = None
+
+    # ------------------------------------------------------------------ stepping
+    def _positions(self) -> np.ndarray:
+        cid = self._client
+        return np.array(
+            [p.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in self._links]
+        )
+
+    def _health(self, prev_pos_l3: np.ndarray, steps: int) -> tuple[str | None, float, np.ndarray]:
+        """(failure or None, max stretch, positions) from a cheap read of the link states."""
+        cid = self._client
+        poses = [p.getBasePositionAndOrientation(b, physicsClientId=cid) for b in self._links]
+        pos = np.array([xyz for xyz, _ in poses])
+        zeros = np.zeros_like(pos)
+        state = SimSnapshot(pos, np.array([q for _, q in poses]), zeros, zeros, 0.0, self.params)
+        if not np.all(np.isfinite(pos)) or not np.all(np.isfinite(state.quaternions_l4)):
+            return "exploded", math.inf, pos
+        lower, upper = _link_ends(state)
+        stretch = float(np.linalg.norm(upper[:-1] - lower[1:], axis=1).max())
+        stretch /= self.params.link_length
+        speed = np.linalg.norm(pos - prev_pos_l3, axis=1).max() / (steps * self.params.timestep)
+        if speed > self.params.explode_speed or np.abs(pos).max() > 100.0:
+            return "exploded", stretch, pos
+        if stretch > self.params.stretch_limit:
+            return "stretch", stretch, pos
+        return None, stretch, pos
+
+    def _step(self) -> None:
+        p.stepSimulation(physicsClientId=self._client)
+        self._sim_time += self.params.timestep
+
+    def _settle_steps(self, seconds: float, early_stop: bool) -> tuple[int, str | None, float]:
+        """Step with no grasp for up to `seconds`; stop early once everything is at rest."""
+        prm = self.params
+        n_max = math.ceil(seconds / prm.timestep - 1e-9)
+        block = max(prm.check_every, 12)
+        pos = self._positions()
+        steps, stretch = 0, 0.0
+        while steps < n_max:
+            n = min(block, n_max - steps)
+            for _ in range(n):
+                self._step()
+            steps += n
+            failure, s, new_pos = self._health(pos, n)
+            stretch = max(stretch, s)
+            if failure:
+                return steps, failure, stretch
+            if early_stop:
+                speed = np.linalg.norm(new_pos - pos, axis=1).max() / (n * prm.timestep)
+                if speed < self.gripper.rest_speed:
+                    break
+            pos = new_pos
+        return steps, None, stretch
+
+    def settle(self, seconds: float = 1.0, early_stop: bool = False) -> None:
+        """Let the rope fall and come to rest for `seconds` with both grippers open."""
+        if not (np.isfinite(seconds) and seconds >= 0):
+            raise InvalidInputError(f"settle seconds must be finite and >= 0, got {seconds}")
+        self._build(self._state())
+        _, failure, _ = self._settle_steps(seconds, early_stop)
+        if failure:
+            self._broken = failure
+
+    def _grasp(self, point_3: np.ndarray) -> tuple[int, int, np.ndarray] | None:
+        """Attach the nearest link within grasp_radius: (link, constraint id, pivot offset)."""
+        state = self._read_state()
+        lower, upper = _link_ends(state)
+        dist_l = _point_segment_distance(point_3, lower, upper)
+        link = int(np.argmin(dist_l))
+        if dist_l[link] > self.gripper.grasp_radius:
+            return None
+        centre = state.positions_l3[link]
+        # The pivot starts where the link centre is, so grasping never yanks the rope; it then
+        # keeps the link centre's offset from the gripper point.
+        cons = p.createConstraint(
+            self._links[link],
+            -1,
+            -1,
+            -1,
+            p.JOINT_POINT2POINT,
+            [0, 0, 0],
+            [0, 0, 0],
+            centre.tolist(),
+            physicsClientId=self._client,
+        )
+        p.changeConstraint(
+            cons, centre.tolist(), maxForce=self.gripper.grip_force, physicsClientId=self._client
+        )
+        return link, cons, centre - point_3
+
+    def execute(self, traj: GripperTrajectory, settle_time: float | None = None) -> ExecutionResult:
+        """Move the grippers along `traj`, grasping and releasing per its closed flags, then settle.
+
+        Waypoint segments take their nominal duration, stretched where needed so that no gripper
+        exceeds ``max_speed`` (3-D) or ``max_descent_speed`` (downwards). Never raises on a
+        simulation blow-up: that ends the run with ``ok=False``.
+        """
+        if not isinstance(traj, GripperTrajectory):
+            raise InvalidInputError(
+                f"execute expects a GripperTrajectory, got {type(traj).__name__}"
+            )
+        settle = self.gripper.settle_time if settle_time is None else float(settle_time)
+        if not (np.isfinite(settle) and settle >= 0):
+            raise InvalidInputError(f"settle_time must be finite and >= 0, got {settle_time}")
+        wall0 = time.perf_counter()
+        state = self._state()
+        if self._broken is not None or not np.all(np.isfinite(state.positions_l3)):
+            return ExecutionResult(False, "exploded", (), (), math.inf, 0, 0.0, 0.0)
+        self._build(state)
+        t0 = self._sim_time
+        prm, grp = self.params, self.gripper
+        pos_gt3, closed_gt = traj.positions_gt3, traj.closed_gt
+        held: list[tuple[int, int, np.ndarray] | None] = [None, None]
+        misgrasps: list[str] = []
+        grasps: list[tuple[str, int]] = []
+        steps, max_stretch, failure = 0, 0.0, None
+        was_closed = [False, False]
+
+        def apply_flags(t: int) -> None:
+            for g in range(2):
+                want = bool(closed_gt[g, t])
+                if want and not was_closed[g]:
+                    got = self._grasp(pos_gt3[g, t])
+                    if got is None:
+                        misgrasps.append(GRIPPERS[g])
+                    else:
+                        held[g] = got
+                        grasps.append((GRIPPERS[g], got[0]))
+                elif not want and was_closed[g]:
+                    self._release(held, g)
+                was_closed[g] = want
+
+        apply_flags(0)
+        last_pos = self._positions()
+        since_check = 0
+        for t in range(1, traj.n_waypoints):
+            start_g3, delta_g3 = pos_gt3[:, t - 1], pos_gt3[:, t] - pos_gt3[:, t - 1]
+            duration = max(
+                float(traj.times_t[t] - traj.times_t[t - 1]),
+                float(np.linalg.norm(delta_g3, axis=1).max()) / grp.max_speed,
+                float(max(0.0, -delta_g3[:, 2].min())) / grp.max_descent_speed,
+            )
+            n_steps = math.ceil(duration / prm.timestep - 1e-9)
+            for k in range(1, n_steps + 1):
+                for g in range(2):
+                    hold = held[g]
+                    if hold is not None:
+                        target = start_g3[g] + delta_g3[g] * (k / n_steps) + hold[2]
+                        p.changeConstraint(
+                            hold[1],
+                            target.tolist(),
+                            maxForce=grp.grip_force,
+                            physicsClientId=self._client,
+                        )
+                self._step()
+                steps += 1
+                since_check += 1
+                if since_check == prm.check_every:
+                    failure, stretch, last_pos = self._health(last_pos, since_check)
+                    max_stretch = max(max_stretch, stretch)
+                    since_check = 0
+                    if failure:
+                        break
+            if failure:
+                break
+            apply_flags(t)
+        for g in range(2):
+            self._release(held, g)
+        if failure is None:
+            n, failure, stretch = self._settle_steps(settle, early_stop=True)
+            steps += n
+            max_stretch = max(max_stretch, stretch)
+        if failure in ("exploded", "stretch"):
+            self._broken = failure
+        elif misgrasps:
+            failure = f"misgrasp:{misgrasps[0]}"
+        return ExecutionResult(
+            ok=failure is None,
+            failure=failure,
+            misgrasps=tuple(misgrasps),
+            grasps=tuple(grasps),
+            max_stretch=float(max_stretch),
+            sim_steps=steps,
+            sim_time=self._sim_time - t0,
+            wall_time=time.perf_counter() - wall0,
+        )
+
+    def _release(self, held: list, g: int) -> None:
+        if held[g] is not None:
+            p.removeConstraint(held[g][1], physicsClientId=self._client)
+            held[g] = None
+
+    # ------------------------------------------------------------------ sensing and drawing
+    def observe(
+        self,
+        noise: float = 0.0,
+        seed: int | None = None,
+        max_points: int = 150,
+        voxel: float = 0.025,
+    ) -> np.ndarray:
+        """Point cloud (N <= max_points, 3) on the rope's upper surface, voxel-downsampled.
+
+        Samples each capsule's cylinder where its normal faces up (what a camera above sees),
+        keeps per voxel the sample nearest to the voxel's mean (so points stay ON the surface),
+        then adds N(0, noise^2) per coordinate from a Generator seeded with `seed`.
+        """
+        if not (np.isfinite(noise) and noise >= 0):
+            raise InvalidInputError(f"observe noise must be finite and >= 0, got {noise}")
+        if max_points < 1 or not voxel > 0:
+            raise InvalidInputError("observe needs max_points >= 1 and voxel > 0")
+        state = self._state()
+        prm = self.params
+        rot_l33 = _quat_to_axes(state.quaternions_l4)
+        u_l3, v_l3, a_l3 = rot_l33[:, :, 0], rot_l33[:, :, 1], rot_l33[:, :, 2]
+        along_s = np.linspace(-0.5, 0.5, 5, endpoint=False) * prm.link_length
+        phi_r = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+        normal_lr3 = (
+            np.cos(phi_r)[None, :, None] * u_l3[:, None, :]
+            + np.sin(phi_r)[None, :, None] * v_l3[:, None, :]
+        )
+        pts = (
+            state.positions_l3[:, None, None, :]
+            + along_s[None, :, None, None] * a_l3[:, None, None, :]
+            + prm.radius * normal_lr3[:, None, :, :]
+        )
+        visible = np.broadcast_to(normal_lr3[:, None, :, 2] >= -0.2, pts.shape[:3])
+        pts = pts[visible & np.isfinite(pts).all(axis=-1)]
+        if pts.shape[0] == 0:
+            return np.zeros((0, 3))
+        inv, _, mean_v3 = voxel_groups(pts, voxel)
+        dist = np.linalg.norm(pts - mean_v3[inv], axis=1)
+        order = np.lexsort((dist, inv))  # by voxel, nearest first
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = inv[order][1:] != inv[order][:-1]
+        cloud = pts[order[first]]
+        if cloud.shape[0] > max_points:
+            cloud = cloud[np.linspace(0, cloud.shape[0] - 1, max_points).round().astype(int)]
+        if noise > 0:
+            cloud = cloud + np.random.default_rng(seed).normal(0.0, noise, size=cloud.shape)
+        return cloud
+
+    def render_topdown(self, path: str | Path, size: int = 800, title: str | None = None) -> Path:
+        """Write a top-down PNG of the rope (left) and a close-up of where it crosses (right).
+
+        Segments are drawn from lowest to highest with a white rim, so the strand on top at a
+        crossing visibly covers the one below.
+        """
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        nodes = self.rope_nodes()
+        xy = nodes[:, :2]
+        # Close-up: nodes within 3 cm (in xy) of a node at least 3 links away along the rope.
+        gap_kk = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+        far_kk = np.abs(np.arange(len(xy))[:, None] - np.arange(len(xy))[None]) >= 3
+        near = (gap_kk < 0.03) & far_kk
+        busy = xy[near.any(axis=1)]
+        panels = [(xy.min(axis=0), xy.max(axis=0), 0.08)]
+        if len(busy):
+            panels.append((busy.min(axis=0), busy.max(axis=0), 0.04))
+        dpi = 100
+        width_in = size / dpi
+        fig = Figure(figsize=(width_in * len(panels), width_in), dpi=dpi)
+        FigureCanvasAgg(fig)
+        top = 0.9 if title else 0.98
+        for p_i, (lo, hi, margin) in enumerate(panels):
+            ax = fig.add_axes((p_i / len(panels) + 0.01, 0.02, 1 / len(panels) - 0.02, top - 0.02))
+            centre, span = 0.5 * (lo + hi), float((hi - lo).max()) + 2 * margin
+            self._draw_rope(ax, nodes, centre, span, size * (top - 0.02))
+            if p_i == 1:
+                ax.set_title("close-up of the crossings", fontsize=10)
+        if title:
+            fig.suptitle(title)
+        out = Path(path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=dpi)
+        return out
+
+    def _draw_rope(self, ax, nodes_k3: np.ndarray, centre_2, span: float, px: float) -> None:
+        import matplotlib
+
+        ax.set_facecolor("#e9e4d8")  # the table
+        ax.set_xlim(centre_2[0] - span / 2, centre_2[0] + span / 2)
+        ax.set_ylim(centre_2[1] - span / 2, centre_2[1] + span / 2)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        width = 2 * self.params.radius * px / 100 * 72 / span  # rope diameter in points
+        n = len(nodes_k3) - 1
+        colours = matplotlib.colormaps["viridis"](np.linspace(0.1, 0.9, n))
+        rim = max(1.5, 0.25 * width)
+        mid_m3 = 0.5 * (nodes_k3[:-1] + nodes_k3[1:])
+        # A white rim only where a segment lies over another one: elsewhere rims would show
+        # as white ticks at every joint.
+        close = np.linalg.norm(mid_m3[:, None, :2] - mid_m3[None, :, :2], axis=2) < 0.03
+        apart = np.abs(np.arange(n)[:, None] - np.arange(n)[None]) >= 2
+        above = mid_m3[:, None, 2] > mid_m3[None, :, 2] + 0.005
+        on_top = (close & apart & above).any(axis=1)
+        for i in np.argsort(mid_m3[:, 2], kind="stable"):
+            seg = nodes_k3[i : i + 2]
+            if on_top[i]:
+                ax.plot(seg[:, 0], seg[:, 1], color="white", lw=width + rim, solid_capstyle="round")
+            ax.plot(seg[:, 0], seg[:, 1], color=colours[i], lw=width, solid_capstyle="round")
+        ax.annotate("A", nodes_k3[0, :2], xytext=(-14, -14), textcoords="offset points")
+        ax.annotate("B", nodes_k3[-1, :2], xytext=(6, 6), textcoords="offset points")

@@ -1,0 +1,314 @@
+"""Engines from URLs, schema checks and migrations (SQLite file checks, WAL, busy timeouts)."""
+
+from __future__ import annotations
+
+import sqlite3
+import struct
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+from urllib.parse import quote
+
+from sqlalchemy import Connection, Engine, create_engine, event, inspect, text
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError, DBAPIError
+from sqlalchemy.pool import NullPool, StaticPool
+
+from knotlab.labeling_db.errors import (
+    CorruptDatabaseError,
+    DatabaseNotFoundError,
+    LabelingDbError,
+    NotADatabaseError,
+    SchemaOutdatedError,
+    SchemaTooNewError,
+)
+from knotlab.labeling_db.models import (
+    SCHEMA_REVISION,
+)
+from knotlab.labeling_db.records import SchemaState, SchemaStatus
+
+DEFAULT_URL = "sqlite:///knotlab.db"
+MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_PG_MIGRATION_LOCK = 0x6B6E6F74  # "knot": serialises concurrent schema upgrades
+if TYPE_CHECKING:
+    from alembic.config import Config
+    from alembic.script import ScriptDirectory
+
+
+# ----------------------------------------------------------------------------- schema
+
+
+# Alembic is imported only to migrate or to judge a database that is not at SCHEMA_REVISION:
+# it costs ~0.5 s of start-up, paid by every labelling process otherwise.
+
+
+@lru_cache(maxsize=1)
+def _script() -> ScriptDirectory:
+    from alembic.script import ScriptDirectory
+
+    return ScriptDirectory.from_config(alembic_config())
+
+
+def alembic_config(connection: Connection | None = None) -> Config:
+    """An Alembic config for the packaged migrations, optionally bound to an open connection."""
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    if connection is not None:
+        cfg.attributes["connection"] = connection
+    return cfg
+
+
+def schema_head() -> str:
+    """The newest schema revision this knotlab knows."""
+    head = _script().get_current_head()
+    assert head is not None, "labeling_db/migrations has no revisions"
+    return head
+
+
+def _status_of(conn: Connection, url_text: str) -> SchemaStatus:
+    tables = tuple(
+        sorted(t for t in inspect(conn).get_table_names() if not t.startswith("sqlite_"))
+    )
+    if "alembic_version" not in tables:
+        state: SchemaState = "foreign" if tables else "empty"
+        return SchemaStatus(url_text, state, None, SCHEMA_REVISION, tables)
+    heads = tuple(conn.execute(text("SELECT version_num FROM alembic_version")).scalars())
+    if heads == (SCHEMA_REVISION,):  # fast path: the revision these models describe
+        return SchemaStatus(url_text, "current", SCHEMA_REVISION, SCHEMA_REVISION, tables)
+    head = schema_head()
+    if not heads:  # stamped at base: empty, unless unversioned tables sit beside it
+        state = "foreign" if len(tables) > 1 else "empty"
+        return SchemaStatus(url_text, state, None, head, tables)
+    if len(heads) != 1:
+        return SchemaStatus(url_text, "too_new", ",".join(heads) or None, head, tables)
+    rev = heads[0]
+    known = {r.revision for r in _script().walk_revisions()}
+    if rev == head:
+        state = "current"
+    elif rev in known:
+        state = "outdated"
+    else:
+        state = "too_new"
+    return SchemaStatus(url_text, state, rev, head, tables)
+
+
+def _raise_for(status: SchemaStatus, *, create: bool, auto_upgrade: bool) -> bool:
+    """Raise if `status` cannot be opened with these options; True when a migration must run."""
+    url = status.url
+    if status.state == "current":
+        return False
+    if status.state == "foreign":
+        shown = ", ".join(status.tables[:6]) + (", ..." if len(status.tables) > 6 else "")
+        raise NotADatabaseError(
+            f"{url}: not a knotlab labelling database (it has tables {shown} but no "
+            f"alembic_version table); refusing to touch it"
+        )
+    if status.state == "too_new":
+        raise SchemaTooNewError(
+            f"{url}: schema revision {status.revision!r} is unknown to this knotlab (newest "
+            f"known: {status.head!r}); it was written by a newer knotlab. Upgrade knotlab to "
+            f"open it; the database was not changed"
+        )
+    if status.state == "empty":
+        if not create:
+            raise SchemaOutdatedError(
+                f"{url}: database has no knotlab schema yet; run: knotlab db init --db {url}"
+            )
+        return True
+    if not auto_upgrade:
+        raise SchemaOutdatedError(
+            f"{url}: schema revision {status.revision!r} is older than this knotlab's "
+            f"{status.head!r}; run: knotlab db upgrade --db {url}"
+        )
+    return True
+
+
+# ----------------------------------------------------------------------------- engines
+
+
+def _url_text(url: URL) -> str:
+    return url.render_as_string(hide_password=True)
+
+
+def _sqlite_path(url: URL) -> Path | None:
+    db = url.database
+    if not db or db == ":memory:" or db.startswith("file:"):
+        return None
+    return Path(db).expanduser()
+
+
+def _check_sqlite_file(path: Path) -> None:
+    """Refuse a file that is not a whole SQLite database, reading it only."""
+    if path.is_dir():
+        raise NotADatabaseError(f"{path}: is a directory, not a database file")
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        header = fh.read(100)
+    if len(header) < 100 or header[:16] != _SQLITE_MAGIC:
+        raise NotADatabaseError(f"{path}: not an SQLite database (bad file header)")
+    (page_size,) = struct.unpack(">H", header[16:18])
+    page_size = 65536 if page_size == 1 else page_size
+    if page_size < 512 or page_size & (page_size - 1):
+        raise CorruptDatabaseError(f"{path}: corrupt header (page size {page_size})")
+    wal = Path(str(path) + "-wal")
+    wal_has_frames = wal.exists() and wal.stat().st_size > 0
+    if size % page_size and not wal_has_frames:
+        raise CorruptDatabaseError(
+            f"{path}: truncated ({size} bytes is not a whole number of {page_size}-byte pages)"
+        )
+    change, n_pages = struct.unpack(">II", header[24:32])
+    (valid_for,) = struct.unpack(">I", header[92:96])
+    if change == valid_for and n_pages * page_size > size and not wal_has_frames:
+        raise CorruptDatabaseError(
+            f"{path}: truncated ({size} bytes on disk, the header says "
+            f"{n_pages} pages of {page_size} bytes)"
+        )
+
+
+def _is_corruption(exc: BaseException | None) -> bool:
+    msg = str(exc).lower()
+    return any(s in msg for s in ("malformed", "not a database", "encrypted", "corrupt"))
+
+
+def _readonly_sqlite_status(path: Path, url_text: str) -> SchemaStatus | None:
+    """Integrity-check and read the schema revision through a read-only connection."""
+
+    def connect() -> sqlite3.Connection:
+        return sqlite3.connect(f"file:{quote(str(path))}?mode=ro", uri=True)
+
+    aux = [Path(f"{path}{suffix}") for suffix in ("-wal", "-shm")]
+    aux_before = [p.exists() for p in aux]
+    engine = create_engine("sqlite://", creator=connect, poolclass=NullPool)
+    try:
+        with engine.connect() as conn:
+            rows = conn.exec_driver_sql("PRAGMA quick_check(5)").scalars().all()
+            if rows != ["ok"]:
+                raise CorruptDatabaseError(
+                    f"{path}: database is corrupt (integrity check: {'; '.join(map(str, rows))})"
+                )
+            return _status_of(conn, url_text)
+    except DBAPIError as exc:
+        if not _is_corruption(exc.orig):
+            return None  # e.g. a hot journal a read-only connection may not replay: check later
+        error = CorruptDatabaseError(f"{path}: database is corrupt ({exc.orig})")
+        error.__cause__ = exc
+    except CorruptDatabaseError as exc:
+        error = exc
+    finally:
+        engine.dispose()
+    # A WAL-mode file opened read-only leaves empty -wal/-shm files: remove the ones we made.
+    if not aux_before[0] and aux[0].exists() and aux[0].stat().st_size == 0:
+        for p, existed in zip(aux, aux_before, strict=True):
+            if not existed:
+                p.unlink(missing_ok=True)
+    raise error
+
+
+def _make_engine(url: URL, *, busy_timeout_s: float, echo: bool) -> Engine:
+    if url.get_backend_name() != "sqlite":
+        return create_engine(url, echo=echo, pool_pre_ping=True)
+    memory = _sqlite_path(url) is None
+    engine = create_engine(
+        url,
+        echo=echo,
+        poolclass=StaticPool if memory else None,
+        connect_args={"check_same_thread": False} if memory else {},
+    )
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_conn: sqlite3.Connection, _record: object) -> None:
+        dbapi_conn.isolation_level = None  # we issue BEGIN ourselves (see _on_begin)
+        cur = dbapi_conn.cursor()
+        cur.execute(f"PRAGMA busy_timeout = {int(busy_timeout_s * 1000)}")
+        cur.execute("PRAGMA foreign_keys = ON")
+        if not memory:
+            cur.execute("PRAGMA journal_mode = WAL")
+            cur.execute("PRAGMA synchronous = FULL")  # a committed label survives power loss
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn: Connection) -> None:
+        write = conn.get_execution_options().get("knotlab_write", False)
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
+
+    return engine
+
+
+def _parse_url(url: str | URL) -> URL:
+    try:
+        return make_url(url)
+    except ArgumentError as exc:
+        raise LabelingDbError(f"{url!r} is not a database URL ({exc})") from exc
+
+
+def _prepare(url: str | URL, *, create: bool) -> tuple[URL, str, SchemaStatus | None]:
+    """Check a SQLite file before anything may write to it; returns a pre-read status if any."""
+    parsed = _parse_url(url)
+    text = _url_text(parsed)
+    path = _sqlite_path(parsed) if parsed.get_backend_name() == "sqlite" else None
+    if path is None:
+        return parsed, text, None
+    # A 0-byte file is an empty SQLite database (another process may be creating it right now):
+    # it holds nothing to lose, so it is treated like a missing file.
+    if not path.exists() or (path.is_file() and path.stat().st_size == 0):
+        if not create:
+            raise DatabaseNotFoundError(
+                f"{path}: no such database (or an empty file); create it with: "
+                f"knotlab db init --db {text}"
+            )
+        if not path.parent.is_dir():
+            raise DatabaseNotFoundError(f"{path}: directory {path.parent} does not exist")
+        return parsed, text, None
+    _check_sqlite_file(path)
+    return parsed, text, _readonly_sqlite_status(path, text)
+
+
+def _upgrade(engine: Engine, url_text: str, revision: str, *, create: bool) -> SchemaStatus:
+    """Migrate to `revision` inside one write transaction, re-reading the revision under lock."""
+    with engine.connect() as conn:
+        conn.execution_options(knotlab_write=True)
+        with conn.begin():
+            if conn.dialect.name == "postgresql":
+                conn.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_PG_MIGRATION_LOCK})")
+            status = _status_of(conn, url_text)
+            _raise_for(status, create=create, auto_upgrade=True)
+            from alembic import command
+
+            command.upgrade(alembic_config(conn), revision)
+        return _status_of(conn, url_text)
+
+
+def schema_status(url: str | URL = DEFAULT_URL) -> SchemaStatus:
+    """Read a database's schema revision without changing it."""
+    parsed, text, status = _prepare(url, create=False)
+    if status is not None:
+        return status
+    engine = _make_engine(parsed, busy_timeout_s=10.0, echo=False)
+    try:
+        with engine.connect() as conn:
+            return _status_of(conn, text)
+    finally:
+        engine.dispose()
+
+
+def upgrade_database(
+    url: str | URL = DEFAULT_URL, *, revision: str = "head", create: bool = True
+) -> tuple[SchemaStatus, SchemaStatus]:
+    """Create or migrate the schema (``alembic upgrade``); returns the status before and after."""
+    parsed, text, before = _prepare(url, create=create)
+    if before is not None:
+        _raise_for(before, create=create, auto_upgrade=True)
+    engine = _make_engine(parsed, busy_timeout_s=30.0, echo=False)
+    try:
+        with engine.connect() as conn:
+            first = before or _status_of(conn, text)
+        _raise_for(first, create=create, auto_upgrade=True)
+        after = _upgrade(engine, text, revision, create=create)
+        return first, after
+    except DBAPIError as exc:
+        raise LabelingDbError(f"{text}: migration failed, nothing changed ({exc.orig})") from exc
+    finally:
+        engine.dispose()

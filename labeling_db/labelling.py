@@ -1,0 +1,434 @@
+"""Labellers, libraries and start states, and human labelling one step at a time."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+from typing import Any, Literal
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
+from knotlab.labeling_db.arrays import encode_array
+from knotlab.labeling_db.errors import (
+    ConflictError,
+    InvalidRecordError,
+    RecordNotFoundError,
+)
+from knotlab.labeling_db.models import (
+    EPISODE_STATUSES,
+    DeadEnd,
+    DemoLibrary,
+    Episode,
+    Label,
+    Labeller,
+    ModelTrainingLabel,
+    RopeState,
+    utcnow,
+)
+from knotlab.labeling_db.records import (
+    EpisodeInfo,
+    LabelInfo,
+    LabellerProgress,
+    StateProvenance,
+    StateRecord,
+)
+from knotlab.labeling_db.rows import (
+    _check_json,
+    _check_key,
+    _episode_info,
+    _label_info,
+    _labeller_id,
+    _library_id,
+    _new_state,
+    _state_record,
+    _unlabelled_start_states,
+)
+from knotlab.labeling_db.store_base import StoreBase
+
+_PG_CLAIM_LOCK = 0x6B6E6F75  # serialises claiming the next unlabelled start state
+
+
+class LabellingStore(StoreBase):
+    """Labellers, libraries and start states, and human labelling one step at a time."""
+
+    # --- labellers, libraries, states
+
+    def add_labeller(self, name: str, kind: Literal["human", "oracle"] = "human") -> None:
+        """Register a labeller (no-op if the name exists)."""
+        _check_key("labeller name", name)
+        if kind not in ("human", "oracle"):
+            raise InvalidRecordError(f"labeller kind must be 'human' or 'oracle', got {kind!r}")
+        self._run(lambda s: _labeller_id(s, name, kind), write=True)
+
+    def labellers(self) -> list[str]:
+        """Names of every labeller, in order of registration."""
+        return self._run(
+            lambda s: list(s.scalars(select(Labeller.name).order_by(Labeller.id))), write=False
+        )
+
+    def register_library(
+        self, library_hash: str, *, name: str | None = None, demo_keys: Sequence[str] | None = None
+    ) -> None:
+        """Record a demo library by its hash (fills in name and keys if not yet known)."""
+        _check_key("library_hash", library_hash, limit=128)
+
+        def work(s: Session) -> None:
+            lib = s.get(DemoLibrary, _library_id(s, library_hash))
+            assert lib is not None
+            if name is not None:
+                lib.name = name
+            if demo_keys is not None:
+                lib.demo_keys = list(demo_keys)
+
+        self._run(work, write=True)
+
+    def add_start_states(
+        self,
+        clouds_n3: Sequence[np.ndarray],
+        *,
+        rope_nodes_k3: Sequence[np.ndarray | None] | None = None,
+        provenance: Sequence[StateProvenance] | None = None,
+    ) -> list[int]:
+        """Queue rope states for labelling (one transaction); returns their ids."""
+        n = len(clouds_n3)
+        nodes = list(rope_nodes_k3) if rope_nodes_k3 is not None else [None] * n
+        provs = list(provenance) if provenance is not None else [StateProvenance()] * n
+        if len(nodes) != n or len(provs) != n:
+            raise InvalidRecordError("clouds, rope nodes and provenance must have equal lengths")
+        rows = []
+        for i, (cloud, node, prov) in enumerate(zip(clouds_n3, nodes, provs, strict=True)):
+            try:
+                checked = DeadEndState(cloud, node)  # reuses core's (n, 3) validation
+            except InvalidInputError as exc:
+                raise InvalidRecordError(f"start state {i}: {exc}") from exc
+            rows.append(_new_state("start", checked.cloud_n3, checked.rope_nodes_k3, prov))
+
+        def work(s: Session) -> list[int]:
+            s.add_all(rows)
+            s.flush()
+            return [r.id for r in rows]
+
+        return self._run(work, write=True)
+
+    def get_state(self, state_id: int) -> StateRecord:
+        """One rope state by id."""
+
+        def work(s: Session) -> StateRecord:
+            row = s.get(RopeState, state_id)
+            if row is None:
+                raise RecordNotFoundError(f"{self.url}: no rope state with id {state_id}")
+            return _state_record(row)
+
+        return self._run(work, write=False)
+
+    def next_unlabelled_state(self) -> StateRecord | None:
+        """The oldest queued start state no live episode has claimed (does not claim it)."""
+
+        def work(s: Session) -> StateRecord | None:
+            row = s.scalars(_unlabelled_start_states().order_by(RopeState.id).limit(1)).first()
+            return None if row is None else _state_record(row)
+
+        return self._run(work, write=False)
+
+    # --- human labelling, one step at a time
+
+    def start_episode(
+        self,
+        labeller: str,
+        *,
+        state_id: int | None = None,
+        execution_id: str | None = None,
+        source: Literal["human", "oracle"] = "human",
+        task_id: str | None = None,
+        library_hash: str | None = None,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> EpisodeInfo | None:
+        """Start an episode on `state_id`, or claim the next unlabelled start state (None: none)."""
+        _check_key("labeller", labeller)
+        _check_key("execution_id", execution_id, optional=True)
+        _check_key("task_id", task_id, optional=True)
+        _check_key("library_hash", library_hash, optional=True, limit=128)
+        meta = dict(metadata or {})
+        _check_json("metadata", meta)
+        key = execution_id or f"{labeller}-{uuid.uuid4().hex[:16]}"
+
+        def work(s: Session) -> EpisodeInfo | None:
+            lid = _labeller_id(s, labeller, source)
+            if state_id is None:
+                if s.get_bind().dialect.name == "postgresql":
+                    s.execute(select(func.pg_advisory_xact_lock(_PG_CLAIM_LOCK)))
+                sid = s.scalars(
+                    select(RopeState.id)
+                    .where(
+                        RopeState.id.in_(_unlabelled_start_states().with_only_columns(RopeState.id))
+                    )
+                    .order_by(RopeState.id)
+                    .limit(1)
+                ).first()
+                if sid is None:
+                    return None
+            else:
+                if s.get(RopeState, state_id) is None:
+                    raise RecordNotFoundError(f"{self.url}: no rope state with id {state_id}")
+                sid = state_id
+            ep = Episode(
+                execution_key=key,
+                start_state_id=sid,
+                labeller_id=lid,
+                library_id=_library_id(s, library_hash),
+                source=source,
+                status="in_progress",
+                ended_in_knot=False,
+                task_id=task_id,
+                meta=meta,
+                started_at=utcnow(),
+            )
+            s.add(ep)
+            with self._conflicts(f"execution id {key!r} already exists"):
+                s.flush()
+            return _episode_info(s, ep)
+
+        return self._run(work, write=True)
+
+    def _locked_episode(self, s: Session, episode_id: int) -> Episode:
+        ep = s.scalars(select(Episode).where(Episode.id == episode_id).with_for_update()).first()
+        if ep is None:
+            raise RecordNotFoundError(f"{self.url}: no episode with id {episode_id}")
+        return ep
+
+    def add_label(
+        self,
+        episode_id: int,
+        step: LabelledStep,
+        *,
+        state_id: int | None = None,
+        provenance: StateProvenance | None = None,
+        labelled_at: datetime | None = None,
+    ) -> LabelInfo:
+        """Append the next step's label to an in-progress episode (step 0 uses the start state)."""
+        if not isinstance(step, LabelledStep):
+            raise InvalidRecordError(f"step must be a LabelledStep, got {type(step)}")
+        _check_key("chosen_demo", step.chosen_demo)
+        _check_key("model_version", step.model_version, optional=True)
+
+        def work(s: Session) -> LabelInfo:
+            ep = self._locked_episode(s, episode_id)
+            if ep.status != "in_progress":
+                raise ConflictError(
+                    f"{self.url}: episode {episode_id} is {ep.status}; "
+                    "only in-progress episodes take labels"
+                )
+            n = s.scalar(select(func.count()).select_from(Label).where(Label.episode_id == ep.id))
+            if step.step_index != n:
+                raise ConflictError(
+                    f"{self.url}: episode {episode_id} has {n} labels, so the next step_index "
+                    f"is {n}, got {step.step_index}"
+                )
+            sid = state_id
+            if sid is None and n == 0 and ep.start_state_id is not None:
+                sid = ep.start_state_id
+            if sid is None:
+                prov = provenance or StateProvenance(ep.task_id, step.step_index, None)
+                row = _new_state("step", step.cloud_n3, step.rope_nodes_k3, prov)
+                s.add(row)
+                s.flush()
+                sid = row.id
+            elif s.get(RopeState, sid) is None:
+                raise RecordNotFoundError(f"{self.url}: no rope state with id {sid}")
+            label = Label(
+                episode_id=ep.id,
+                state_id=sid,
+                labeller_id=ep.labeller_id,
+                step_index=step.step_index,
+                chosen_demo=step.chosen_demo,
+                candidates=list(step.candidates),
+                candidate_scores=None
+                if step.candidate_scores_c is None
+                else encode_array(step.candidate_scores_c, name="candidate_scores_c"),
+                ranked_by_model=step.model_version,
+                outcome=step.outcome,
+                source=ep.source,
+                labelled_at=labelled_at or utcnow(),
+            )
+            s.add(label)
+            with self._conflicts(f"episode {episode_id} already has step {step.step_index}"):
+                s.flush()
+            return _label_info(label, ep, ep.labeller.name)
+
+        return self._run(work, write=True)
+
+    def add_dead_end(
+        self, episode_id: int, dead_end: DeadEndState, *, provenance: StateProvenance | None = None
+    ) -> int:
+        """Record a dead-end state met during an episode; returns its rope state id."""
+
+        def work(s: Session) -> int:
+            ep = self._locked_episode(s, episode_id)
+            n = s.scalar(
+                select(func.count()).select_from(DeadEnd).where(DeadEnd.episode_id == ep.id)
+            )
+            prov = provenance or StateProvenance(ep.task_id, None, None)
+            row = _new_state("dead_end", dead_end.cloud_n3, dead_end.rope_nodes_k3, prov)
+            s.add(row)
+            s.flush()
+            s.add(DeadEnd(episode_id=ep.id, state_id=row.id, ordinal=int(n or 0)))
+            s.flush()
+            return row.id
+
+        return self._run(work, write=True)
+
+    def finish_episode(
+        self, episode_id: int, *, status: Literal["completed", "abandoned"] = "completed"
+    ) -> EpisodeInfo:
+        """Close an episode; it ended in a knot iff its last label's outcome is a knot."""
+        if status not in ("completed", "abandoned"):
+            raise InvalidRecordError(f"status must be 'completed' or 'abandoned', got {status!r}")
+
+        def work(s: Session) -> EpisodeInfo:
+            ep = self._locked_episode(s, episode_id)
+            last = s.scalars(
+                select(Label.outcome)
+                .where(Label.episode_id == ep.id)
+                .order_by(Label.step_index.desc())
+                .limit(1)
+            ).first()
+            ep.status = status
+            ep.ended_in_knot = last == "knot"
+            ep.finished_at = utcnow()
+            s.flush()
+            return _episode_info(s, ep)
+
+        return self._run(work, write=True)
+
+    def undo_last_label(self, labeller: str) -> LabelInfo | None:
+        """Delete exactly the most recent label of `labeller` (None if they have none)."""
+
+        def work(s: Session) -> LabelInfo | None:
+            lid = s.scalar(select(Labeller.id).where(Labeller.name == labeller))
+            if lid is None:
+                raise RecordNotFoundError(f"{self.url}: no labeller named {labeller!r}")
+            label = s.scalars(
+                select(Label).where(Label.labeller_id == lid).order_by(Label.id.desc()).limit(1)
+            ).first()
+            if label is None:
+                return None
+            used = s.scalar(
+                select(func.count())
+                .select_from(ModelTrainingLabel)
+                .where(ModelTrainingLabel.label_id == label.id)
+            )
+            if used:
+                raise ConflictError(
+                    f"{self.url}: label {label.id} of {labeller!r} was used to train "
+                    f"{used} model(s) and cannot be undone"
+                )
+            ep = self._locked_episode(s, label.episode_id)
+            info = _label_info(label, ep, labeller)
+            state_id, own_state = label.state_id, label.state_id != ep.start_state_id
+            s.delete(label)
+            if ep.status == "completed":  # its last step is gone: it is being relabelled
+                ep.status, ep.ended_in_knot, ep.finished_at = "in_progress", False, None
+            s.flush()
+            if own_state:
+                refs = (
+                    s.scalar(
+                        select(func.count()).select_from(Label).where(Label.state_id == state_id)
+                    )
+                    or 0
+                ) + (
+                    s.scalar(
+                        select(func.count())
+                        .select_from(DeadEnd)
+                        .where(DeadEnd.state_id == state_id)
+                    )
+                    or 0
+                )
+                state = s.get(RopeState, state_id)
+                if not refs and state is not None and state.role == "step":
+                    s.delete(state)
+            return info
+
+        return self._run(work, write=True)
+
+    def episode(self, episode_id: int) -> EpisodeInfo:
+        """One episode's bookkeeping."""
+
+        def work(s: Session) -> EpisodeInfo:
+            ep = s.get(Episode, episode_id)
+            if ep is None:
+                raise RecordNotFoundError(f"{self.url}: no episode with id {episode_id}")
+            return _episode_info(s, ep)
+
+        return self._run(work, write=False)
+
+    def progress(self, labeller: str) -> LabellerProgress:
+        """Counts of a labeller's labels, outcomes and episodes, and the start states left."""
+
+        def work(s: Session) -> LabellerProgress:
+            lid = s.scalar(select(Labeller.id).where(Labeller.name == labeller))
+            if lid is None:
+                raise RecordNotFoundError(f"{self.url}: no labeller named {labeller!r}")
+            outcomes = dict.fromkeys(OUTCOMES, 0)
+            for outcome, n in s.execute(
+                select(Label.outcome, func.count())
+                .where(Label.labeller_id == lid)
+                .group_by(Label.outcome)
+            ):
+                outcomes[outcome] = int(n)
+            statuses = dict.fromkeys(EPISODE_STATUSES, 0)
+            for status, n in s.execute(
+                select(Episode.status, func.count())
+                .where(Episode.labeller_id == lid)
+                .group_by(Episode.status)
+            ):
+                statuses[status] = int(n)
+            knots = s.scalar(
+                select(func.count())
+                .select_from(Episode)
+                .where(Episode.labeller_id == lid, Episode.ended_in_knot.is_(True))
+            )
+            dead = s.scalar(
+                select(func.count())
+                .select_from(DeadEnd)
+                .join(Episode, DeadEnd.episode_id == Episode.id)
+                .where(Episode.labeller_id == lid)
+            )
+            last = s.scalar(select(func.max(Label.labelled_at)).where(Label.labeller_id == lid))
+            remaining = s.scalar(
+                select(func.count()).select_from(_unlabelled_start_states().subquery())
+            )
+            return LabellerProgress(
+                labeller=labeller,
+                labels=sum(outcomes.values()),
+                outcomes=outcomes,
+                episodes_in_progress=statuses["in_progress"],
+                episodes_completed=statuses["completed"],
+                episodes_abandoned=statuses["abandoned"],
+                knots=int(knots or 0),
+                dead_ends=int(dead or 0),
+                last_label_at=last,
+                start_states_remaining=int(remaining or 0),
+            )
+
+        return self._run(work, write=False)
+
+    def labels(self, *, labeller: str | None = None) -> list[LabelInfo]:
+        """Bookkeeping of every label (optionally one labeller's), oldest first."""
+
+        def work(s: Session) -> list[LabelInfo]:
+            q = (
+                select(Label, Episode, Labeller.name)
+                .join(Episode, Label.episode_id == Episode.id)
+                .join(Labeller, Label.labeller_id == Labeller.id)
+                .order_by(Label.id)
+            )
+            if labeller is not None:
+                q = q.where(Labeller.name == labeller)
+            return [_label_info(lab, ep, name) for lab, ep, name in s.execute(q)]
+
+        return self._run(work, write=False)

@@ -1,0 +1,149 @@
+"""Row-level helpers of the store: key and JSON checks, idempotent inserts, id lookups."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from knotlab.labeling_db.arrays import decode_array, encode_array
+from knotlab.labeling_db.errors import (
+    InvalidRecordError,
+)
+from knotlab.labeling_db.models import (
+    DemoLibrary,
+    Episode,
+    Label,
+    Labeller,
+    RopeState,
+    utcnow,
+)
+from knotlab.labeling_db.records import EpisodeInfo, LabelInfo, StateProvenance, StateRecord
+
+_MAX_KEY = 200
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _check_key(what: str, value: object, *, optional: bool = False, limit: int = _MAX_KEY) -> None:
+    if value is None and optional:
+        return
+    if not isinstance(value, str) or not value or len(value) > limit:
+        raise InvalidRecordError(f"{what} must be a non-empty string of at most {limit} chars")
+
+
+def _check_json(what: str, value: object) -> None:
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise InvalidRecordError(f"{what} must be JSON-serialisable without NaN ({exc})") from exc
+
+
+def _insert_ignore(session: Session, model: type, values: dict[str, Any], key: str) -> None:
+    dialect = session.get_bind().dialect.name
+    if dialect == "sqlite":
+        from sqlalchemy.dialects.sqlite import insert
+    elif dialect == "postgresql":
+        from sqlalchemy.dialects.postgresql import insert  # type: ignore[assignment]
+    else:  # pragma: no cover - only SQLite and PostgreSQL are supported
+        exists = session.scalar(
+            select(getattr(model, key)).where(getattr(model, key) == values[key])
+        )
+        if exists is None:
+            session.add(model(**values))
+            session.flush()
+        return
+    session.execute(insert(model).values(**values).on_conflict_do_nothing(index_elements=[key]))
+
+
+def _labeller_id(session: Session, name: str, kind: str) -> int:
+    _insert_ignore(session, Labeller, {"name": name, "kind": kind, "created_at": utcnow()}, "name")
+    return session.scalars(select(Labeller.id).where(Labeller.name == name)).one()
+
+
+def _library_id(session: Session, library_hash: str | None) -> int | None:
+    if library_hash is None:
+        return None
+    _insert_ignore(
+        session,
+        DemoLibrary,
+        {"library_hash": library_hash, "created_at": utcnow()},
+        "library_hash",
+    )
+    return session.scalars(
+        select(DemoLibrary.id).where(DemoLibrary.library_hash == library_hash)
+    ).one()
+
+
+def _new_state(
+    role: str, cloud_n3: np.ndarray, rope_nodes_k3: np.ndarray | None, prov: StateProvenance
+) -> RopeState:
+    if prov.seed is not None and not (isinstance(prov.seed, int) and -(2**31) <= prov.seed < 2**31):
+        raise InvalidRecordError(f"seed must be a 32-bit integer, got {prov.seed!r}")
+    return RopeState(
+        role=role,
+        cloud=encode_array(cloud_n3, name="cloud_n3"),
+        rope_nodes=None if rope_nodes_k3 is None else encode_array(rope_nodes_k3, name="rope"),
+        task_id=prov.task_id,
+        episode_step=prov.episode_step,
+        seed=prov.seed,
+        created_at=utcnow(),
+    )
+
+
+def _state_record(row: RopeState) -> StateRecord:
+    where = f"rope_states.id={row.id}"
+    return StateRecord(
+        state_id=row.id,
+        role=row.role,
+        cloud_n3=decode_array(row.cloud, where=f"{where} cloud"),
+        rope_nodes_k3=None
+        if row.rope_nodes is None
+        else decode_array(row.rope_nodes, where=f"{where} rope_nodes"),
+        provenance=StateProvenance(row.task_id, row.episode_step, row.seed),
+        created_at=row.created_at,
+    )
+
+
+def _episode_info(session: Session, ep: Episode) -> EpisodeInfo:
+    n = session.scalar(select(func.count()).select_from(Label).where(Label.episode_id == ep.id))
+    return EpisodeInfo(
+        episode_id=ep.id,
+        execution_id=ep.execution_key,
+        labeller=ep.labeller.name,
+        source=ep.source,
+        status=ep.status,
+        start_state_id=ep.start_state_id,
+        n_labels=int(n or 0),
+        ended_in_knot=ep.ended_in_knot,
+        started_at=ep.started_at,
+        finished_at=ep.finished_at,
+    )
+
+
+def _label_info(label: Label, ep: Episode, labeller: str) -> LabelInfo:
+    return LabelInfo(
+        label_id=label.id,
+        episode_id=ep.id,
+        execution_id=ep.execution_key,
+        labeller=labeller,
+        step_index=label.step_index,
+        state_id=label.state_id,
+        chosen_demo=label.chosen_demo,
+        outcome=label.outcome,
+        source=label.source,
+        labelled_at=label.labelled_at,
+    )
+
+
+def _unlabelled_start_states():
+    taken = (
+        select(Episode.id)
+        .where(Episode.start_state_id == RopeState.id, Episode.status != "abandoned")
+        .exists()
+    )
+    return select(RopeState).where(RopeState.role == "start", ~taken)

@@ -1,0 +1,24 @@
+"""Shared test set-up: the database fixtures as a plugin, and the project's root folder.
+
+The test folders mirror core/'s stages (world, registration, demos, selection, experiments), the
+storage layer (labeling_db) and the app (app). Shared builders live beside this file:
+`tests/minilib.py` (a tiny real demo library, task sets and labels) and `tests/db_fixtures.py`
+(SQLite and PostgreSQL stores).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("tests.db_fixtures", "tests.minilib")
+pytest_plugins = ["tests.db_fixtures"]
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def project_root() -> Path:
+    """The repository root (where static/ and results/ live)."""
+    return ROOT

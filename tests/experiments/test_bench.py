@@ -1,0 +1,331 @@
+"""`knotlab bench` end to end on the tiny real library: results, resuming, refusals, engines."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from knotlab.app import cli
+from knotlab.core.demos.tasks import RopeTask
+from knotlab.core.experiments.bench import (
+    BenchMismatchError,
+    BenchWorker,
+    EpisodeJob,
+    OutcomeLog,
+    RunIdentity,
+    WorkerSpec,
+    plan_jobs,
+    wilson_interval,
+)
+from tests.minilib import mini_library, write_mini_files, write_mini_labels
+
+pytestmark = pytest.mark.xdist_group("bench")
+
+N_TASKS = 2
+POLICIES = "nn,greedy,oracle"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, Path]:
+    """Mini library, 3 test tasks, labels and a model trained on them via `knotlab train`."""
+    d = tmp_path_factory.mktemp("bench_files")
+    lib, tasks = write_mini_files(d, n_tasks=3)
+    labels = write_mini_labels(d / "labels.jsonl")
+    model = d / "model.npz"
+    rc = cli.main(
+        [
+            *("train", "--labels", str(labels), "--library", str(lib), "--out", str(model)),
+            *("--workers", "1", "--no-progress", "--validation-fraction", "0"),
+        ]
+    )
+    assert rc == 0
+    return {"dir": d, "library": lib, "tasks": tasks, "labels": labels, "model": model}
+
+
+def _bench_args(files, out: Path, *extra: str, policies: str = POLICIES) -> list[str]:
+    return [
+        "bench",
+        "--policies",
+        policies,
+        "--tasks",
+        str(N_TASKS),
+        "--out",
+        str(out),
+        "--library",
+        str(files["library"]),
+        "--task-set",
+        str(files["tasks"]),
+        "--model",
+        str(files["model"]),
+        "--max-steps",
+        "1",
+        "--workers",
+        "1",
+        "--no-progress",
+        "--json",
+        *extra,
+    ]
+
+
+def _last_json(capsys) -> dict:
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def first_run(files, tmp_path_factory) -> dict:
+    """One bench run of nn, greedy and oracle on 2 tasks (1 step each), kept for the tests."""
+    out = tmp_path_factory.mktemp("bench_run") / "out"
+    mp = pytest.MonkeyPatch()
+    try:
+        import io
+        import sys
+
+        buf = io.StringIO()
+        mp.setattr(sys, "stdout", buf)
+        rc = cli.main(_bench_args(files, out))
+    finally:
+        mp.undo()
+    text = buf.getvalue()
+    return {"rc": rc, "out": out, "stdout": text, "summary": json.loads(text.splitlines()[-1])}
+
+
+# ---------------------------------------------------------------------------- pure functions
+
+
+@pytest.mark.parametrize(
+    ("k", "n", "low", "high"),
+    [
+        (0, 10, 0.0, 0.27753),  # upper = z^2 / (n + z^2)
+        (5, 10, 0.23659, 0.76341),
+        (10, 10, 0.72247, 1.0),
+        (86, 100, 0.77863, 0.91474),  # scipy.stats.binomtest(...).proportion_ci("wilson")
+        (107, 125, 0.78384, 0.90693),  # the paper's greedy count: 85.6 % of 125
+        (1, 1, 0.20655, 1.0),
+    ],
+)
+def test_wilson_interval_matches_known_values(k, n, low, high):
+    lo, hi = wilson_interval(k, n)
+    assert lo == pytest.approx(low, abs=1e-5)
+    assert hi == pytest.approx(high, abs=1e-5)
+
+
+def test_wilson_interval_of_nothing_is_nan_and_bad_counts_raise():
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
+    with pytest.raises(ValueError):
+        wilson_interval(3, 2)
+
+
+def test_first_limits_only_the_search_policies():
+    tasks = [RopeTask(f"t{i}", np.zeros((5, 3)), 0, i) for i in range(3)]
+    jobs = plan_jobs(
+        tasks, ["nn", "la1x10", "oracle"], {("nn", "t0")}, seed=0, max_steps=5, noise=0, first=1
+    )
+    assert [(j.policy, j.task_id) for j in jobs] == [
+        ("la1x10", "t0"),
+        ("oracle", "t0"),
+        ("nn", "t1"),
+        ("nn", "t2"),
+    ]
+    assert len({j.seed for j in jobs if j.task_id == "t0"}) == 1  # same noise for every policy
+
+
+def test_run_identity_pins_the_model_only_once_a_learned_policy_ran():
+    base = RunIdentity("lib", "tasks", 0, 0.0, 5, None)
+    pinned = RunIdentity("lib", "tasks", 0, 0.0, 5, "m1").merged(base)
+    assert pinned.model_hash == "m1"
+    assert base.merged(pinned).model_hash == "m1"  # an nn-only rerun keeps the pin
+    with pytest.raises(BenchMismatchError, match="model_hash"):
+        RunIdentity("lib", "tasks", 0, 0.0, 5, "m2").merged(pinned)
+    with pytest.raises(BenchMismatchError, match="noise"):
+        RunIdentity("lib", "tasks", 0, 0.01, 5, None).merged(pinned)
+
+
+def test_outcome_log_drops_a_torn_last_line_and_appends_cleanly(tmp_path):
+    path = tmp_path / "o.jsonl"
+    path.write_text('{"policy": "nn", "task_id": "a", "x": 1}\n{"policy": "nn", "task_')
+    log = OutcomeLog(path)
+    assert list(log.load()) == [("nn", "a")]
+    with log.open() as fh:
+        OutcomeLog.append(fh, {"policy": "nn", "task_id": "b"})
+    assert list(log.load()) == [("nn", "a"), ("nn", "b")]
+
+
+def test_worker_turns_an_unexpected_exception_into_an_error_outcome():
+    worker = BenchWorker(WorkerSpec(mini_library(2)))
+    try:
+        bad = np.full((41, 3), np.nan)  # world.reset rejects it before the episode starts
+        rec = worker.run(EpisodeJob("nn", 0, "bad-task", bad, 1, 1, 0.0))
+        assert rec["success"] is False
+        assert rec["failure_kind"] == "error"
+        assert "bad-task" in rec["task_id"] and rec["error"]
+        good = mini_library(2)[0].pre_nodes_k3
+        assert worker.run(EpisodeJob("nn", 1, "ok", good, 1, 1, 0.0))["failure_kind"] != "error"
+    finally:
+        worker.close()
+
+
+# ---------------------------------------------------------------------------- the command
+
+
+def test_bench_writes_results_table_and_chart(first_run, files):
+    assert first_run["rc"] == 0
+    out = first_run["out"]
+    res = json.loads((out / "results.json").read_text())
+    assert res["format"] == "knotlab-bench-results"
+    assert res["policies"] == ["nn", "greedy", "oracle"]
+    assert res["library_hash"] == mini_library(2).content_hash()
+    assert res["model_hash"] and res["task_set_hash"]
+    assert set(res["packages"]) >= {"numpy", "scipy", "pybullet", "cvxpy", "knotlab"}
+    assert res["machine"]["cpu_count"] >= 1
+    assert res["arguments"]["tasks"] == N_TASKS and res["arguments"]["max_steps"] == 1
+    assert set(res["seeds"]["episode_seeds"]) == {"mini-test-0000", "mini-test-0001"}
+    for policy in ("nn", "greedy", "oracle"):
+        recs = res["outcomes"][policy]
+        assert [r["task_id"] for r in recs] == ["mini-test-0000", "mini-test-0001"]
+        for r in recs:
+            assert r["policy"] == policy and r["n_steps"] <= 1
+            assert isinstance(r["success"], bool) and len(r["decision_s"]) == r["n_steps"]
+    row = {r["policy"]: r for r in res["table"]}
+    assert row["nn"]["n"] == N_TASKS and row["nn"]["paper_rate"] == pytest.approx(0.688)
+    assert row["oracle"]["paper_rate"] is None
+    assert 0 <= row["greedy"]["wilson_low"] <= row["greedy"]["wilson_high"] <= 1
+    assert (out / "table1.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len((out / "outcomes.jsonl").read_text().splitlines()) == 3 * N_TASKS
+    text = first_run["stdout"]
+    assert "Table I" in text and "68.8%" in text and "oracle" in text
+    assert first_run["summary"]["ran"] == 3 * N_TASKS
+
+
+def test_rerun_runs_nothing_and_reports_the_same_outcomes(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    before = json.loads((out / "results.json").read_text())["outcomes"]
+    assert cli.main(_bench_args(files, out)) == 0
+    summary = _last_json(capsys)
+    assert summary["ran"] == 0 and summary["resumed"] == 3 * N_TASKS
+    assert json.loads((out / "results.json").read_text())["outcomes"] == before
+
+
+def test_interrupted_run_resumes_only_the_missing_episodes(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    lines = (out / "outcomes.jsonl").read_text().splitlines(keepends=True)
+    lost = json.loads(lines[-1])
+    # Killed while writing the last line: five whole lines and half of the sixth.
+    (out / "outcomes.jsonl").write_text("".join(lines[:-1]) + lines[-1][:25])
+    assert cli.main(_bench_args(files, out)) == 0
+    summary = _last_json(capsys)
+    assert summary["ran"] == 1 and summary["resumed"] == 3 * N_TASKS - 1
+    after = (out / "outcomes.jsonl").read_text().splitlines()
+    assert len(after) == 3 * N_TASKS and all(json.loads(line) for line in after)
+    redone = json.loads(after[-1])
+    assert (redone["policy"], redone["task_id"]) == (lost["policy"], lost["task_id"])
+
+
+def test_more_tasks_and_other_policies_extend_an_existing_run(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    args = _bench_args(files, out, policies="nn")
+    args[args.index("--tasks") + 1] = "3"
+    args.remove("--model")  # nn needs no model; the pinned model hash stays
+    args.remove(str(files["model"]))
+    assert cli.main(args) == 0
+    summary = _last_json(capsys)
+    assert summary["ran"] == 1 and summary["resumed"] == N_TASKS
+    identity = json.loads((out / "run.json").read_text())["identity"]
+    assert identity["model_hash"] is not None
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "field"),
+    [("--seed", "1", "seed"), ("--noise", "0.01", "noise"), ("--max-steps", "2", "max_steps")],
+)
+def test_rerun_with_different_defining_arguments_is_refused(
+    first_run, files, tmp_path, capsys, flag, value, field
+):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    before = (out / "outcomes.jsonl").read_bytes()
+    args = _bench_args(files, out)
+    if flag in args:
+        args[args.index(flag) + 1] = value
+    else:
+        args += [flag, value]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "different arguments" in err and field in err
+    assert (out / "outcomes.jsonl").read_bytes() == before
+
+
+def test_rerun_with_another_model_or_library_is_refused(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    other = tmp_path / "other_model.npz"
+    assert (
+        cli.main(
+            [
+                *("train", "--labels", str(files["labels"]), "--library", str(files["library"])),
+                *("--out", str(other), "--C", "7", "--workers", "1", "--no-progress"),
+                *("--validation-fraction", "0"),
+            ]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    args = _bench_args(files, out)
+    args[args.index("--model") + 1] = str(other)
+    assert cli.main(args) == 2
+    assert "model_hash" in capsys.readouterr().err
+    other_lib = mini_library(3).save(tmp_path / "lib3.npz")
+    args = _bench_args(files, out, policies="nn")
+    args[args.index("--library") + 1] = str(other_lib)
+    assert cli.main(args) == 2
+    assert "library_hash" in capsys.readouterr().err
+
+
+def test_learned_policy_without_a_model_says_to_train_first(files, tmp_path, capsys, monkeypatch):
+    from knotlab.app import defaults
+
+    monkeypatch.setattr(defaults, "MODEL_PATH", tmp_path / "no_model.npz")
+    args = _bench_args(files, tmp_path / "out", policies="nn,greedy")
+    i = args.index("--model")
+    del args[i : i + 2]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "knotlab train" in err and "greedy" in err
+    assert not (tmp_path / "out" / "outcomes.jsonl").exists()
+
+
+def test_unknown_policy_is_refused_before_any_work(files, tmp_path, capsys):
+    assert cli.main(_bench_args(files, tmp_path / "out", policies="nn,best")) == 2
+    assert "unknown policy" in capsys.readouterr().err
+
+
+def test_local_process_pool_runs_the_same_jobs(files, tmp_path, capsys):
+    out = tmp_path / "out"
+    args = _bench_args(files, out, policies="nn")
+    args[args.index("--workers") + 1] = "2"
+    assert cli.main(args) == 0
+    assert _last_json(capsys)["ran"] == N_TASKS
+    res = json.loads((out / "results.json").read_text())
+    pids = {r["pid"] for r in res["outcomes"]["nn"]}
+    assert len(res["outcomes"]["nn"]) == N_TASKS and pids.isdisjoint({__import__("os").getpid()})
+
+
+@pytest.mark.slow
+def test_ray_engine_runs_the_same_jobs_on_actors(files, tmp_path, capsys):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'ray[default]')")
+    out = tmp_path / "out"
+    args = _bench_args(files, out, "--engine", "ray", policies="nn")
+    args[args.index("--workers") + 1] = "2"
+    assert cli.main(args) == 0
+    assert _last_json(capsys)["ran"] == N_TASKS
+    res = json.loads((out / "results.json").read_text())
+    assert res["engine"] == "ray"
+    assert [r["task_id"] for r in res["outcomes"]["nn"]] == ["mini-test-0000", "mini-test-0001"]
+    assert all(r["failure_kind"] != "error" for r in res["outcomes"]["nn"])

@@ -1,0 +1,255 @@
+"""Bidirectional TPS-RPM: accuracy on warped rope clouds, costs, batch = single pair, bad input."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration import (
+    COST_NAMES,
+    EXACT,
+    SCAN,
+    LibraryRegistrar,
+    RegistrationParams,
+    register,
+)
+from knotlab.core.registration.synthetic import SmoothWarp, corrupt, rope_cloud, smooth_warp
+
+# The test clouds carry 5 % outliers, so the expected outlier fraction is set to match; with the
+# paper's 1 % the outlier row can absorb only ~1 point and Sinkhorn forces the rest onto the rope.
+EXACT_5PC = replace(EXACT, outlier_frac=0.05)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_exact_recovers_moderate_warp_within_1cm(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    demo = rope_cloud(rng, 100)
+    warp = smooth_warp(rng, magnitude_m=0.03, angle_rad=0.05)
+    scene = corrupt(rng, warp(demo), noise_m=0.002, outlier_frac=0.05)
+    reg = register(demo, scene, EXACT_5PC)
+    assert reg.ok
+    err = np.linalg.norm(reg.f(demo) - warp(demo), axis=1)
+    assert err.mean() < 0.01, err.mean()
+    # g maps the scene back: the scene's true points return near their demo originals
+    back = np.linalg.norm(reg.g(warp(demo)) - demo, axis=1)
+    assert np.median(back) < 0.01
+
+
+@pytest.mark.parametrize("scale", [0.25, 1.0, 2.0])
+def test_internal_scale_does_not_change_the_world_fit(scale: float) -> None:
+    # Regularisers are stated in world units and converted once: the kernel's internal length
+    # scale_m is a numerical detail, so the warp in metres must not move when it changes.
+    rng = np.random.default_rng(3)
+    demo = rope_cloud(rng, 80)
+    scene = corrupt(rng, smooth_warp(rng, 0.03, angle_rad=0.3)(demo), 0.002, 0.0)
+    probe = demo + np.array([0.0, 0.0, 0.3])  # gripper waypoints above the rope
+    base = register(demo, scene, EXACT)
+    other = register(demo, scene, replace(EXACT, scale_m=EXACT.scale_m * scale))
+    np.testing.assert_allclose(other.f(probe), base.f(probe), atol=1e-6)
+    np.testing.assert_allclose(other.g(scene), base.g(scene), atol=1e-6)
+    assert other.costs.residual_fwd_m == pytest.approx(base.costs.residual_fwd_m, abs=1e-8)
+
+
+def test_identity_pull_is_stated_in_world_units() -> None:
+    # R / s^2 in the kernel's coordinates: (1e-3, 1e-3, 0.1) m^2 at s = 0.5 m is (4e-3, 4e-3, 0.4).
+    np.testing.assert_allclose(SCAN.normalised_rot_coef, (4e-3, 4e-3, 0.4))
+    lams, temps = SCAN.normalised_schedule()
+    np.testing.assert_allclose([lams[0], temps[0]], [0.1, 0.1])
+
+
+@pytest.mark.parametrize("params", [SCAN, EXACT], ids=["scan", "exact"])
+def test_identical_clouds_give_near_zero_cost(params: RegistrationParams) -> None:
+    rng = np.random.default_rng(4)
+    demo = rope_cloud(rng, 100)
+    same = register(demo, demo, params)
+    warped = register(demo, smooth_warp(rng, 0.04)(demo), params)
+    assert same.nn_cost < 0.1 * warped.nn_cost
+    assert same.nn_cost < 0.05
+    np.testing.assert_allclose(same.f(demo), demo, atol=0.01)
+
+
+@pytest.mark.parametrize("params", [SCAN, EXACT], ids=["scan", "exact"])
+def test_cost_grows_with_deformation(params: RegistrationParams) -> None:
+    rng = np.random.default_rng(0)
+    demo = rope_cloud(rng, 100)
+    base = smooth_warp(rng, 1.0, angle_rad=0.0)
+    noise = np.random.default_rng(9).normal(0, 0.002, demo.shape)
+    costs = []
+    for mag in (0.0, 0.02, 0.04, 0.08):
+        warp = SmoothWarp(np.eye(3), np.zeros(3), base.amp_k3 * mag, base.omega_k3, base.phase_k)
+        costs.append(register(demo, warp(demo) + noise, params).nn_cost)
+    assert np.all(np.diff(costs) > 0), costs
+
+
+def _library(seed: int, sizes: list[int]) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rope_cloud(rng, n) for n in sizes]
+
+
+def test_batched_scan_agrees_with_single_pair() -> None:
+    demos = _library(5, [80, 120, 95, 110, 100, 90])
+    rng = np.random.default_rng(6)
+    scene = corrupt(rng, smooth_warp(rng, 0.03)(demos[2]))
+    registrar = LibraryRegistrar(SCAN, chunk_size=4, n_workers=2)
+    result = registrar.scan(scene, demos, key="lib-a")
+    assert result.ok_a.all()
+    for a, demo in enumerate(demos):
+        single = register(demo, scene, SCAN)
+        np.testing.assert_allclose(result.costs(a).as_array(), single.costs.as_array(), rtol=1e-4)
+        assert result.nn_cost_a[a] == pytest.approx(single.nn_cost, rel=1e-5)
+        np.testing.assert_allclose(result.f(a)(demo), single.f(demo), atol=1e-5)
+        np.testing.assert_allclose(result.g(a)(scene), single.g(scene), atol=1e-5)
+    # a slightly moved, noisy copy of demo 2 finds demo 2 as its nearest neighbour
+    near = corrupt(rng, demos[2] + [0.01, -0.01, 0.0], noise_m=0.002, outlier_frac=0.0)
+    assert int(np.argmin(registrar.scan(near, demos, key="lib-a").nn_cost_a)) == 2
+
+
+def test_scan_reports_bad_demos_without_stopping() -> None:
+    demos = _library(7, [90, 90, 90])
+    huge = demos[0] * 1e25  # overflows float32: a non-finite fit
+    bad = [demos[0], np.full((50, 3), np.nan), np.zeros((0, 3)), np.ones((9, 3)), huge, demos[1]]
+    scene = demos[1] + 0.01
+    result = LibraryRegistrar(SCAN).scan(scene, bad)
+    assert result.ok_a.tolist() == [True, False, False, False, False, True]
+    assert "no finite points" in result.reason_a[1]
+    assert "empty" in result.reason_a[2]
+    assert "at least 5 distinct" in result.reason_a[3]
+    assert result.reason_a[4]
+    assert np.isinf(result.nn_cost_a[1:5]).all()
+    assert np.isfinite(result.nn_cost_a[[0, 5]]).all()
+    assert int(np.argmin(result.nn_cost_a)) == 5
+
+
+def test_bad_inputs_raise_clear_errors() -> None:
+    cloud = rope_cloud(np.random.default_rng(0), 60)
+    with pytest.raises(InvalidInputError, match="empty"):
+        register(cloud, np.zeros((0, 3)))
+    with pytest.raises(InvalidInputError, match="no finite points"):
+        register(np.full((10, 3), np.nan), cloud)
+    with pytest.raises(InvalidInputError, match=r"shape \(n, 3\)"):
+        register(cloud[:, :2], cloud)
+    with pytest.raises(InvalidInputError, match=r"shape \(n, 3\)"):
+        LibraryRegistrar().scan(cloud, [cloud, cloud[:, :2]])
+    with pytest.raises(InvalidInputError, match="empty"):
+        LibraryRegistrar().scan(cloud, [])
+
+
+def test_nan_rows_dropped_and_big_clouds_capped_with_warnings() -> None:
+    rng = np.random.default_rng(1)
+    cloud = rope_cloud(rng, 200)
+    with_nan = cloud[:120].copy()
+    with_nan[::10] = np.nan
+    params = replace(SCAN, max_points=150)
+    with pytest.warns(RuntimeWarning, match="non-finite rows"):
+        reg = register(with_nan, cloud[:120], params)
+    assert reg.ok and reg.corr_nm.shape == (108, 120)
+    with pytest.warns(RuntimeWarning, match="exceed the cap of 150"):
+        first = register(cloud, cloud, params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        second = register(cloud, cloud, params)
+    assert first.corr_nm.shape == (150, 150)
+    assert first.nn_cost == second.nn_cost  # deterministic subsample
+
+
+def test_disk_and_memory_cache_give_identical_scans(tmp_path) -> None:
+    demos = _library(8, [70, 85, 90])
+    scene = demos[0] + 0.02
+    first = LibraryRegistrar(SCAN, cache_dir=tmp_path)
+    res1 = first.scan(scene, demos, key="hash-1")
+    assert list((tmp_path / ".cache").glob("*.npz"))
+    assert first.prepare(demos, key="hash-1") is first.prepare(demos, key="hash-1")
+    second = LibraryRegistrar(SCAN, cache_dir=tmp_path)
+    res2 = second.scan(scene, demos, key="hash-1")
+    np.testing.assert_array_equal(res1.costs_ac, res2.costs_ac)
+    assert res2.costs_ac.shape == (3, len(COST_NAMES))
+    np.testing.assert_allclose(res2.f(1)(demos[1]), res1.f(1)(demos[1]))
+
+
+# ----------------------------------------------------------------------------- numba kernel
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_kernel_exp_matches_numpy(dtype: str) -> None:
+    from knotlab.core.registration.kernel import _exp_neg_row, kernel_constants
+
+    dt = np.dtype(dtype)
+    s = np.concatenate([np.linspace(0, 100, 997), np.random.default_rng(0).uniform(0, 90, 500)])
+    s = s.astype(dt)
+    p = np.empty((1, len(s)), dt)
+    bits = np.empty(len(s), np.int32 if dt == np.float32 else np.int64)
+    bias_shift = (127, 23) if dt == np.float32 else (1023, 52)
+    _exp_neg_row(
+        s.copy(), p, 0, bits, bits.view(dt), *bias_shift, kernel_constants(dt, SCAN), len(s)
+    )
+    want = np.exp(-np.minimum(s.astype(float), 80.0))
+    rel = np.abs(p[0] / want - 1)
+    assert rel.max() < (2.5e-7 if dt == np.float32 else 1e-12), rel.max()
+
+
+def _numpy_reference(demo, scene, params):
+    """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
+    from knotlab.core.registration.tps import tps_basis
+
+    x, y = demo, scene
+    bx, by = tps_basis(x, params.normalised_rot_coef), tps_basis(y, params.normalised_rot_coef)
+    n, m = len(x), len(y)
+    prior, frac, cutoff = params.outlier_prior, params.outlier_frac, params.outlier_cutoff
+    weighted = params.target_rule == "weighted"
+    corner = (prior if weighted else frac) * np.sqrt(n * m)
+    fx, gy = x.copy(), y.copy()
+    for lam, temp in zip(*params.normalised_schedule(), strict=True):
+        d = np.linalg.norm(fx[:, None] - y[None], axis=2) + np.linalg.norm(
+            x[:, None] - gy[None], axis=2
+        )
+        p = np.exp(-np.minimum(d / (2 * temp), 80.0))
+        c, c_out = np.ones(m), 1.0
+        for _ in range(params.sinkhorn_iters):
+            r = 1.0 / (p @ c + prior * c_out)
+            r_out = m * frac / (prior * c.sum() + corner * c_out)
+            c_prev, c = c, 1.0 / (p.T @ r + prior * r_out)
+            c_out = n * frac / (prior * r.sum() + corner * r_out)
+        mr = r[:, None] * p * c_prev[None]
+        mc = r[:, None] * p * c[None]
+        w_f, w_g = mr.sum(1), mc.sum(0)
+        xhat = (mr @ y) / w_f[:, None]
+        yhat = (mc.T @ x) / w_g[:, None]
+        if weighted:
+            e_f, e_g = bx.solve(xhat, lam, w_f), by.solve(yhat, lam, w_g)
+        else:
+            xhat = np.where((w_f >= cutoff)[:, None], xhat, fx)
+            yhat = np.where((w_g >= cutoff)[:, None], yhat, gy)
+            e_f, e_g = bx.solve(xhat, lam), by.solve(yhat, lam)
+        fx, gy = bx.g_nk @ e_f, by.g_nk @ e_g
+    map_cost = np.sum((w_f if weighted else 1.0) * ((fx - xhat) ** 2).sum(1))
+    return e_f, e_g, map_cost
+
+
+@pytest.mark.parametrize("rule", ["batch", "weighted"])
+def test_kernel_matches_numpy_reference_on_random_clouds(rule: str) -> None:
+    from knotlab.core.registration.rpm import demo_side, rpm_batch, scene_side
+
+    rng = np.random.default_rng(11)
+    params = replace(SCAN, target_rule=rule, dtype="float64", n_iter=6, scale_m=1.0)
+    for n, m in [(23, 31), (40, 17)]:
+        demo = rng.normal(scale=0.3, size=(n, 3))
+        scene = demo[: min(n, m)] + rng.normal(scale=0.05, size=(min(n, m), 3))
+        scene = np.vstack([scene, rng.normal(scale=0.3, size=(m - len(scene), 3))])
+        # clouds already median-centred so the reference needs no normalisation
+        demo -= np.median(demo, axis=0)
+        scene -= np.median(scene, axis=0)
+        e_f, e_g, map_cost = _numpy_reference(demo, scene, params)
+        out = rpm_batch(
+            demo_side([demo], params), np.array([0]), scene_side(scene, params), params, False
+        )
+        np.testing.assert_allclose(out.e_f[0, : len(e_f)], e_f, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(out.e_g[0, : len(e_g)], e_g, rtol=1e-7, atol=1e-9)
+        assert out.costs_bc[0, 0] == pytest.approx(map_cost, rel=1e-7, abs=1e-12)
+        # float32 (the SCAN dtype) stays close to the float64 result
+        p32 = replace(params, dtype="float32")
+        out32 = rpm_batch(demo_side([demo], p32), np.array([0]), scene_side(scene, p32), p32, False)
+        np.testing.assert_allclose(out32.e_f[0, : len(e_f)], e_f, rtol=2e-3, atol=2e-3)

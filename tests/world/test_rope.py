@@ -1,0 +1,103 @@
+"""Rope geometry: resampling, length, self-intersection and the tent perturbation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.world.rope import (
+    has_xy_self_intersection,
+    perturb_rope,
+    perturb_rope_with_info,
+    resample_by_arc_length,
+    rope_length,
+    straight_rope,
+)
+
+
+def smooth_curve(coeffs: list[float], n: int = 400) -> np.ndarray:
+    u = np.linspace(0, 1, n)
+    y = sum(c / (k + 1) * np.sin((k + 1) * np.pi * u) for k, c in enumerate(coeffs))
+    return np.stack([u - 0.5, y, 0.01 + 0.02 * u], axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    coeffs=st.lists(st.floats(-0.15, 0.15), min_size=1, max_size=3),
+    n=st.integers(41, 120),
+)
+def test_resampling_keeps_length_ends_and_even_spacing(coeffs, n) -> None:
+    curve = smooth_curve(coeffs)
+    out = resample_by_arc_length(curve, n)
+    assert out.shape == (n, 3)
+    assert np.array_equal(out[[0, -1]], curve[[0, -1]])
+    assert rope_length(out) <= rope_length(curve) + 1e-12  # chords never lengthen
+    assert rope_length(out) == pytest.approx(rope_length(curve), rel=2e-3)
+    seg = np.linalg.norm(np.diff(out, axis=0), axis=1)
+    assert seg.max() - seg.min() < 0.05 * seg.mean()
+
+
+def test_resampling_a_straight_rope_is_exact_for_any_count() -> None:
+    out = resample_by_arc_length(np.array([[-0.5, 0, 0.01], [0.5, 0, 0.01]]), 41)
+    np.testing.assert_allclose(out, straight_rope(41), atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "bad", [np.zeros((1, 3)), np.zeros((4, 2)), np.array([[0, 0, 0], [np.nan, 0, 0.0]])]
+)
+def test_bad_nodes_are_rejected(bad) -> None:
+    with pytest.raises(InvalidInputError):
+        resample_by_arc_length(bad, 10)
+
+
+def test_self_intersection_in_xy() -> None:
+    assert not has_xy_self_intersection(straight_rope())
+    loop = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0.5, 1, 0], [0.5, -1, 0.5]], dtype=float)
+    assert has_xy_self_intersection(loop)  # crossing above the first strand still counts
+    assert not has_xy_self_intersection(loop[:4])
+
+
+def serpentine() -> np.ndarray:
+    """Strands 4 cm apart: most tent draws with rho = 5 cm make it cross itself."""
+    pts = []
+    for row in range(6):
+        xs = np.linspace(-0.1, 0.1, 8)
+        pts += [(x, 0.04 * row, 0.01) for x in (xs if row % 2 == 0 else xs[::-1])]
+    return resample_by_arc_length(np.array(pts), 41)
+
+
+@pytest.mark.parametrize("rope", [straight_rope(), serpentine()], ids=["straight", "serpentine"])
+def test_perturbation_keeps_length_and_count_and_never_crosses(rope) -> None:
+    for seed in range(5):
+        out = perturb_rope(rope, 0.05, seed=seed, max_tries=200)
+        assert out.shape == rope.shape
+        assert rope_length(out) == pytest.approx(rope_length(rope), rel=1e-9)
+        assert not has_xy_self_intersection(out)
+        np.testing.assert_allclose(out[:, 2], rope[0, 2])  # xy-only: the rope stays flat
+
+
+def test_perturbation_is_seeded() -> None:
+    a = perturb_rope(straight_rope(), 0.1, seed=3)
+    b = perturb_rope(straight_rope(), 0.1, seed=3)
+    c = perturb_rope(straight_rope(), 0.1, seed=4)
+    assert np.array_equal(a, b)
+    assert not np.allclose(a, c)
+    assert np.abs(a - straight_rope()).max() > 0.01  # it really moved
+
+
+def test_peak_displacement_does_not_grow_with_retries() -> None:
+    rho = 0.05
+    infos = [perturb_rope_with_info(serpentine(), rho, seed=s, max_tries=500) for s in range(12)]
+    retried = [i for i in infos if i.n_tries >= 3]
+    assert retried, "the serpentine should need retries"
+    # Stacked retries (the original bug) would reach n_tries * rho; fresh draws stay <= rho.
+    assert max(i.peak_tent for i in infos) <= rho * (1 + 1e-12)
+
+
+def test_impossible_perturbation_raises_clear_error() -> None:
+    crossing = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0.5, 1, 0], [0.5, -1, 0]], float)
+    with pytest.raises(InvalidInputError, match="no self-intersection-free perturbation"):
+        perturb_rope(resample_by_arc_length(crossing, 41), 0.0, max_tries=3)
