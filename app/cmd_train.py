@@ -53,6 +53,20 @@ def _count_pair(text: str) -> tuple[int, int]:
     return pair
 
 
+def _unwritable_model_path(path: Path, *, force: bool) -> str | None:
+    """Why ``path`` must not be written (a shipped or committed model, a folder), else None."""
+    if path.is_dir():
+        return f"--out {path} is a folder; give a model file name (.npz)"
+    protected = [defaults.STATIC_DIR, defaults.RESULTS_DIR]
+    inside = any(path.resolve().is_relative_to(d.resolve()) for d in protected)
+    if path.exists() and inside and not force:
+        return (
+            f"--out {path} would replace a shipped or committed model; "
+            "write elsewhere or pass --force"
+        )
+    return None
+
+
 def _fail(message: str) -> int:
     print(f"knotlab train: error: {message}", file=sys.stderr)
     return 2
@@ -90,7 +104,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.labels is not None and args.db is not None:
         return _fail("give --labels or --db, not both")
     library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
-    out_path = Path(args.out) if args.out else defaults.MODEL_PATH
+    out_path = Path(args.out) if args.out else None
+    if out_path is not None:
+        problem = _unwritable_model_path(out_path, force=args.force)
+        if problem:
+            return _fail(problem)
     try:
         library = DemoLibrary.load(library_path)
     except (FileNotFoundError, KnotlabError) as exc:
@@ -148,6 +166,8 @@ def _run(args: argparse.Namespace) -> int:
             )
     info = {"labels": args.labels or (args.db or default_db_url()), **search.info_}
     final = dataclasses.replace(final, metrics={**final.metrics, "training_run": info})
+    if out_path is None:  # never the shipped default: a new file named by the model's hash
+        out_path = defaults.MODELS_DIR / f"model-{final.content_hash()}.npz"
     final.save(out_path)
     featurize_s, fit_s = search.featurize_s_, best.fit_s
     train_n, val_n = search.n_train_executions_, search.n_validation_executions_
@@ -234,7 +254,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="landmark states sampled from the training split: LABELLED,DEAD_ENDS "
         "(default 50,20 as in the original; 0,0 for none)",
     )
-    p.add_argument("--out", default=None, help=f"model file (default {defaults.MODEL_PATH})")
+    p.add_argument(
+        "--out",
+        default=None,
+        help=f"model file to write (default: a new {defaults.MODELS_DIR.name}/model-HASH.npz in "
+        "the working directory; the shipped default model is never overwritten implicitly)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="allow --out to replace an existing model under static/ or results/",
+    )
     p.add_argument(
         "--select",
         choices=("top1", "value_auc"),

@@ -7,6 +7,8 @@ from pathlib import Path
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
 LIBRARY_PATH = STATIC_DIR / "demos_default.npz"
 MODEL_PATH = STATIC_DIR / "model_default.npz"
+RESULTS_DIR = STATIC_DIR.parent / "results"
+MODELS_DIR = Path("models")  # relative to the working directory: where `train` writes by default
 DB_URL = "sqlite:///knotlab.db"
 LEVELS: tuple[str, ...] = ("main", "hard")
 

@@ -86,3 +86,30 @@ def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
     assert (summary["C"], summary["D"]) == (best["C"], best["D"])
     with pytest.raises(SystemExit):
         cli.main([*args[:-1], "nonsense"])
+
+
+def test_train_without_out_never_touches_the_shipped_model(tmp_path, capsys, monkeypatch):
+    from knotlab.app import defaults
+
+    shipped = defaults.MODEL_PATH.read_bytes()
+    args, _ = mini_train_args(tmp_path)
+    i = args.index("--out")
+    del args[i : i + 2]
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    written = tmp_path / "models" / f"model-{summary['model_hash']}.npz"
+    assert written.exists() and summary["model"] == str(defaults.MODELS_DIR / written.name)
+    assert defaults.MODEL_PATH.read_bytes() == shipped
+
+
+def test_train_refuses_to_replace_a_shipped_model_without_force(tmp_path, capsys):
+    from knotlab.app import defaults
+
+    shipped = defaults.MODEL_PATH.read_bytes()
+    args, _ = mini_train_args(tmp_path)
+    args[args.index("--out") + 1] = str(defaults.MODEL_PATH)
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "would replace a shipped or committed model" in err and len(err.splitlines()) == 1
+    assert defaults.MODEL_PATH.read_bytes() == shipped
