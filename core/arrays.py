@@ -10,13 +10,20 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 
 
-def points_n3(name: str, arr: np.ndarray) -> np.ndarray:
-    """``arr`` as a float (n, 3) array with n >= 1 and finite values, else a named error."""
+def points_n3(name: str, arr: np.ndarray, min_points: int = 1) -> np.ndarray:
+    """``arr`` as a float (n, 3) array with n >= min_points, all finite, else a named error.
+
+    The one (n, 3) check of knotlab: clouds, rope nodes and task starts all go through it, so a
+    bad array is reported the same way everywhere (its name, its shape, the first bad rows).
+    """
     a = np.asarray(arr, dtype=float)
-    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
-        raise InvalidInputError(f"{name} must have shape (n, 3) with n >= 1, got {a.shape}")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InvalidInputError(f"{name} must have shape (n, 3), got {a.shape}")
+    if a.shape[0] < min_points:
+        raise InvalidInputError(f"{name} needs at least {min_points} points, got {a.shape[0]}")
     if not np.all(np.isfinite(a)):
-        raise InvalidInputError(f"{name} contains NaN or infinite values")
+        bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+        raise InvalidInputError(f"{name} contains NaN or infinite values (rows {bad[:5].tolist()})")
     return a
 
 

@@ -139,12 +139,13 @@ def _episode_ids(s: Session, keys: Sequence[str]) -> dict[str, int]:
 
 
 def _load_executions(s: Session, conds: list[Any]) -> list[StoredExecution]:
+    """Executions matching ``conds``, with steps, dead ends and provenance (three queries)."""
     ep_ids = select(Episode.id).where(*conds)
     episodes = s.execute(
         select(
             Episode.id,
             Episode.execution_key,
-            Labeller.name,
+            Labeller.name.label("labeller"),
             Episode.source,
             Episode.status,
             Episode.ended_in_knot,
@@ -159,11 +160,19 @@ def _load_executions(s: Session, conds: list[Any]) -> list[StoredExecution]:
         .where(*conds)
         .order_by(Episode.id)
     ).all()
+    state_columns = (
+        RopeState.id.label("state_id"),
+        RopeState.cloud,
+        RopeState.rope_nodes,
+        RopeState.task_id.label("state_task_id"),
+        RopeState.episode_step.label("state_episode_step"),
+        RopeState.seed.label("state_seed"),
+    )
     steps: dict[int, list[Any]] = defaultdict(list)
     for row in s.execute(
         select(
             Label.episode_id,
-            Label.id,
+            Label.id.label("label_id"),
             Label.step_index,
             Label.chosen_demo,
             Label.candidates,
@@ -171,112 +180,78 @@ def _load_executions(s: Session, conds: list[Any]) -> list[StoredExecution]:
             Label.ranked_by_model,
             Label.outcome,
             Label.labelled_at,
-            RopeState.id,
-            RopeState.cloud,
-            RopeState.rope_nodes,
-            RopeState.task_id,
-            RopeState.episode_step,
-            RopeState.seed,
+            *state_columns,
         )
         .join(RopeState, Label.state_id == RopeState.id)
         .where(Label.episode_id.in_(ep_ids))
         .order_by(Label.episode_id, Label.step_index)
     ):
-        steps[row[0]].append(row)
+        steps[row.episode_id].append(row)
     dead: dict[int, list[Any]] = defaultdict(list)
     for dead_row in s.execute(
-        select(
-            DeadEnd.episode_id,
-            RopeState.id,
-            RopeState.cloud,
-            RopeState.rope_nodes,
-            RopeState.task_id,
-            RopeState.episode_step,
-            RopeState.seed,
-        )
+        select(DeadEnd.episode_id, *state_columns)
         .join(RopeState, DeadEnd.state_id == RopeState.id)
         .where(DeadEnd.episode_id.in_(ep_ids))
         .order_by(DeadEnd.episode_id, DeadEnd.ordinal)
     ):
-        dead[dead_row[0]].append(dead_row)
+        dead[dead_row.episode_id].append(dead_row)
+
+    def provenance(row: Any) -> StateProvenance:
+        return StateProvenance(row.state_task_id, row.state_episode_step, row.state_seed)
 
     out = []
-    for (
-        ep_id,
-        key,
-        labeller,
-        source,
-        status,
-        knot,
-        task_id,
-        lib,
-        meta,
-        started,
-        finished,
-    ) in episodes:
+    for ep in episodes:
         try:
             step_records = []
-            for (
-                _e,
-                label_id,
-                index,
-                demo,
-                cands,
-                scores,
-                model_version,
-                outcome,
-                _at,
-                sid,
-                cloud,
-                nodes,
-                *_prov,
-            ) in steps[ep_id]:
-                where = f"label id={label_id} (state id={sid})"
+            for st in steps[ep.id]:
+                where = f"label id={st.label_id} (state id={st.state_id})"
                 step_records.append(
                     LabelledStep(
-                        step_index=index,
-                        cloud_n3=decode_array(cloud, where=f"{where} cloud"),
-                        chosen_demo=demo,
-                        outcome=outcome,
+                        step_index=st.step_index,
+                        cloud_n3=decode_array(st.cloud, where=f"{where} cloud"),
+                        chosen_demo=st.chosen_demo,
+                        outcome=st.outcome,
                         rope_nodes_k3=None
-                        if nodes is None
-                        else decode_array(nodes, where=f"{where} rope_nodes"),
-                        candidates=tuple(cands or ()),
+                        if st.rope_nodes is None
+                        else decode_array(st.rope_nodes, where=f"{where} rope_nodes"),
+                        candidates=tuple(st.candidates or ()),
                         candidate_scores_c=None
-                        if scores is None
-                        else decode_array(scores, where=f"{where} candidate_scores"),
-                        model_version=model_version,
+                        if st.candidate_scores is None
+                        else decode_array(st.candidate_scores, where=f"{where} candidate_scores"),
+                        model_version=st.ranked_by_model,
                     )
                 )
             dead_records = [
                 DeadEndState(
-                    decode_array(cloud, where=f"dead-end state id={sid} cloud"),
-                    None if nodes is None else decode_array(nodes, where=f"state id={sid} nodes"),
+                    decode_array(d.cloud, where=f"dead-end state id={d.state_id} cloud"),
+                    None
+                    if d.rope_nodes is None
+                    else decode_array(d.rope_nodes, where=f"state id={d.state_id} nodes"),
                 )
-                for _e, sid, cloud, nodes, *_prov in dead[ep_id]
+                for d in dead[ep.id]
             ]
             execution = LabelledExecution(
-                execution_id=key,
-                source=source,
-                labeller=labeller,
+                execution_id=ep.execution_key,
+                source=ep.source,
+                labeller=ep.labeller,
                 steps=tuple(step_records),
-                ended_in_knot=bool(knot),
+                ended_in_knot=bool(ep.ended_in_knot),
                 dead_ends=tuple(dead_records),
-                task_id=task_id,
-                library_hash=lib,
-                metadata=dict(meta or {}),
+                task_id=ep.task_id,
+                library_hash=ep.library_hash,
+                metadata=dict(ep.meta or {}),
             )
         except InvalidInputError as exc:
-            raise CorruptDatabaseError(f"episode id={ep_id} ({key!r}): {exc}") from exc
+            raise CorruptDatabaseError(f"episode id={ep.id} ({ep.execution_key!r}): {exc}") from exc
         out.append(
             StoredExecution(
                 execution,
-                status=status,
-                started_at=started,
-                finished_at=finished,
-                labelled_at=tuple(r[8] for r in steps[ep_id]),
-                step_provenance=tuple(StateProvenance(*r[12:15]) for r in steps[ep_id]),
-                dead_end_provenance=tuple(StateProvenance(*r[4:7]) for r in dead[ep_id]),
+                status=ep.status,
+                started_at=ep.started_at,
+                finished_at=ep.finished_at,
+                labelled_at=tuple(st.labelled_at for st in steps[ep.id]),
+                step_provenance=tuple(provenance(st) for st in steps[ep.id]),
+                dead_end_provenance=tuple(provenance(d) for d in dead[ep.id]),
             )
         )
     return out

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.arrays import points_n3
 from knotlab.core.errors import CorruptFileError, InvalidInputError
 from knotlab.core.hashing import ContentHash
 from knotlab.core.npzfile import read_npz, write_npz
@@ -37,13 +38,7 @@ class RopeTask:
     seed: int
 
     def __post_init__(self) -> None:
-        nodes = np.asarray(self.start_nodes_k3, dtype=float)
-        if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 3:
-            raise InvalidInputError(
-                f"task {self.task_id}: start_nodes_k3 must be (K>=3, 3), got {nodes.shape}"
-            )
-        if not np.all(np.isfinite(nodes)):
-            raise InvalidInputError(f"task {self.task_id}: start nodes contain NaN or inf")
+        nodes = points_n3(f"task {self.task_id} start_nodes_k3", self.start_nodes_k3, 3)
         object.__setattr__(self, "start_nodes_k3", nodes)
 
 

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from knotlab.core.arrays import points_n3
 from knotlab.core.errors import InvalidInputError, SolverError
 
 DEFAULT_ROT_COEF: tuple[float, float, float] = (1e-4, 1e-4, 0.1)
@@ -48,14 +49,7 @@ def tps_kernel(a_n3: np.ndarray, b_m3: np.ndarray) -> np.ndarray:
 
 
 def _as_cloud(name: str, arr: np.ndarray, min_points: int = 1) -> np.ndarray:
-    out = np.asarray(arr, dtype=float)
-    if out.ndim != 2 or out.shape[1] != 3:
-        raise InvalidInputError(f"{name} must have shape (n, 3), got {out.shape}")
-    if out.shape[0] < min_points:
-        raise InvalidInputError(f"{name} needs at least {min_points} points, got {out.shape[0]}")
-    if not np.all(np.isfinite(out)):
-        raise InvalidInputError(f"{name} contains NaN or infinite values")
-    return out
+    return points_n3(name, arr, min_points)
 
 
 @dataclass(frozen=True, eq=False)

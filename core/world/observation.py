@@ -31,6 +31,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from knotlab.core.arrays import points_n3
 from knotlab.core.errors import InvalidInputError
 
 
@@ -67,9 +68,7 @@ _TRACKER_VOXEL = 0.01  # m
 
 def centreline_points(nodes_k3: np.ndarray) -> np.ndarray:
     """The rope's nodes and segment midpoints, in order along the rope: (2K - 1, 3)."""
-    nodes = np.asarray(nodes_k3, dtype=float)
-    if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 2:
-        raise InvalidInputError(f"rope nodes must have shape (K >= 2, 3), got {nodes.shape}")
+    nodes = points_n3("rope nodes", nodes_k3, min_points=2)
     out = np.empty((2 * nodes.shape[0] - 1, 3))
     out[0::2] = nodes
     out[1::2] = 0.5 * (nodes[:-1] + nodes[1:])

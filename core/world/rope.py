@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
+from knotlab.core.arrays import points_n3
 from knotlab.core.errors import InvalidInputError
 
 # |cross| below this (m^2) counts as parallel: such pairs cannot cross transversally.
@@ -19,15 +20,7 @@ _PARALLEL_EPS = 1e-18
 
 def as_nodes(nodes_k3: np.ndarray, name: str = "rope nodes", min_nodes: int = 2) -> np.ndarray:
     """Validate a (K, 3) finite float array of rope nodes and return it as float64."""
-    arr = np.asarray(nodes_k3, dtype=float)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise InvalidInputError(f"{name} must have shape (K, 3), got {arr.shape}")
-    if arr.shape[0] < min_nodes:
-        raise InvalidInputError(f"{name} need at least {min_nodes} nodes, got {arr.shape[0]}")
-    if not np.all(np.isfinite(arr)):
-        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-        raise InvalidInputError(f"{name} contain NaN or infinite values (nodes {bad[:5].tolist()})")
-    return arr
+    return points_n3(name, nodes_k3, min_nodes)
 
 
 def rope_length(nodes_k3: np.ndarray) -> float:
