@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import add_db_argument, db_url, fail
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,15 +42,29 @@ def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.errors import KnotlabError
     from knotlab.core.experiments.labeller import OracleParams, oracle_label_tasks
     from knotlab.labeling_db.store import open_store
 
     args.db = db_url(args)
+    for flag, value in (("--candidates", args.candidates), ("--sim-budget", args.sim_budget)):
+        if value < 1:
+            return fail(f"{flag} must be >= 1, got {value} (nothing would be simulated)")
+    if args.limit is not None and args.limit < 0:
+        return fail(f"--limit must be >= 0, got {args.limit}")
 
     task_path = args.task_file or defaults.task_set_path(args.level, args.tasks)
-    tasks = TaskSet.load(task_path)
-    library = DemoLibrary.load(args.library)
-    selected = list(tasks)[: args.limit] if args.limit else list(tasks)
+    try:
+        tasks = TaskSet.load(task_path)
+        library = DemoLibrary.load(args.library)
+    except (OSError, KnotlabError) as exc:
+        return fail(exc)
+    if tasks.split != "train":
+        return fail(
+            f"{task_path} is a {tasks.split!r} task set: labels train the model, so only "
+            "training starts may be labelled (the test set must stay unseen)"
+        )
+    selected = list(tasks) if args.limit is None else list(tasks)[: args.limit]
     t0 = time.perf_counter()
     solved = sims = dead = 0
     with open_store(args.db) as store:

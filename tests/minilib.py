@@ -127,11 +127,14 @@ def mini_executions(n_demos: int = 2) -> list[LabelledExecution]:
     return out
 
 
-def write_mini_files(directory: Path, n_tasks: int = 3, n_demos: int = 2) -> tuple[Path, Path]:
-    """Save the mini library and test task set under ``directory``; returns their paths."""
+def write_mini_files(
+    directory: Path, n_tasks: int = 3, n_demos: int = 2, split: str = "test"
+) -> tuple[Path, Path]:
+    """Save the mini library and a task set of ``split`` under ``directory``; their paths."""
     directory = Path(directory)
     lib_path = mini_library(n_demos).save(directory / "mini_demos.npz")
-    tasks_path = mini_tasks(n_tasks, "test", n_demos=n_demos).save(directory / "mini_tasks.npz")
+    tasks = mini_tasks(n_tasks, split, n_demos=n_demos)
+    tasks_path = tasks.save(directory / f"mini_tasks_{split}.npz")
     return lib_path, tasks_path
 
 

@@ -14,7 +14,7 @@ pytestmark = pytest.mark.xdist_group("minilib")
 
 
 def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
-    lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2)
+    lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
     url = f"sqlite:///{tmp_path / 'labels.db'}"
     args = ["label", "--oracle", "--task-file", str(tasks_path), "--library", str(lib_path)]
     args += ["--db", url, "--limit", "1", "--sim-budget", "3", "--workers", "1", "--json"]
@@ -31,3 +31,34 @@ def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
     assert cli.main(args) == 0
     second = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert second["tasks"] == 0 and second["skipped_already_labelled"] == 1
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--candidates", "0"], "--candidates must be >= 1"),
+        (["--candidates", "-3"], "--candidates must be >= 1"),
+        (["--sim-budget", "0"], "--sim-budget must be >= 1"),
+        (["--limit", "-1"], "--limit must be >= 0"),
+    ],
+)
+def test_label_refuses_budgets_that_would_simulate_nothing(tmp_path, capsys, extra, message):
+    lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=1, split="train")
+    url = f"sqlite:///{tmp_path / 'labels.db'}"
+    args = ["label", "--oracle", "--task-file", str(tasks_path), "--library", str(lib_path)]
+    assert cli.main([*args, "--db", url, *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "labels.db").exists()  # refused before anything was written
+
+
+def test_label_refuses_a_test_split_and_a_limit_of_zero_labels_nothing(tmp_path, capsys):
+    lib_path, test_path = write_mini_files(tmp_path, n_tasks=1, split="test")
+    url = f"sqlite:///{tmp_path / 'labels.db'}"
+    args = ["label", "--oracle", "--library", str(lib_path), "--db", url, "--workers", "1"]
+    assert cli.main([*args, "--task-file", str(test_path)]) == 2
+    assert "'test' task set" in capsys.readouterr().err
+    _, train_path = write_mini_files(tmp_path, n_tasks=1, split="train")
+    assert cli.main([*args, "--task-file", str(train_path), "--limit", "0", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["tasks"] == 0 and summary["simulations"] == 0
