@@ -54,6 +54,11 @@ def _run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     policies = [p.strip() for p in args.policies.split(",") if p.strip()]
+    for flag, value in (("--tasks", args.tasks), ("--max-steps", args.max_steps)):
+        if value < 1:
+            return _fail(f"{flag} must be >= 1, got {value}")
+    if args.first is not None and args.first < 1:
+        return _fail(f"--first must be >= 1, got {args.first}")
     try:
         validate_policies(policies)
     except KnotlabError as exc:
@@ -100,7 +105,7 @@ def _run(args: argparse.Namespace) -> int:
         "max_steps": args.max_steps,
         "argv": sys.argv,
     }
-    n_tasks = min(args.tasks, len(task_set)) if args.tasks else len(task_set)
+    n_tasks = min(args.tasks, len(task_set))
     try:
         result = run_bench(
             out_dir,
@@ -148,6 +153,22 @@ def _run(args: argparse.Namespace) -> int:
             "table": result.rows,
         }
         print(json.dumps(_json_safe(summary)))
+    errored = {
+        p: sum(r["failure_kind"] == "error" for r in recs) for p, recs in result.outcomes.items()
+    }
+    if any(errored.values()):
+        first_error = next(
+            r["error"]
+            for recs in result.outcomes.values()
+            for r in recs
+            if r["failure_kind"] == "error"
+        )
+        print(
+            "knotlab bench: error: episodes errored, so this is not a result "
+            f"({', '.join(f'{p}: {n}' for p, n in errored.items() if n)}); first: {first_error}",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -329,3 +329,46 @@ def test_ray_engine_runs_the_same_jobs_on_actors(files, tmp_path, capsys):
     assert res["engine"] == "ray"
     assert [r["task_id"] for r in res["outcomes"]["nn"]] == ["mini-test-0000", "mini-test-0001"]
     assert all(r["failure_kind"] != "error" for r in res["outcomes"]["nn"])
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (("--tasks", "0"), "--tasks must be >= 1"),
+        (("--max-steps", "0"), "--max-steps must be >= 1"),
+        (("--first", "0"), "--first must be >= 1"),
+    ],
+)
+def test_bench_refuses_counts_that_would_not_be_a_table(files, tmp_path, capsys, extra, message):
+    args = _bench_args(files, tmp_path / "out")
+    for flag, value in zip(extra[::2], extra[1::2], strict=True):
+        if flag in args:
+            args[args.index(flag) + 1] = value
+        else:
+            args += [flag, value]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_run_whose_episodes_errored_is_not_a_result(files, tmp_path, capsys):
+    from knotlab.core.demos.tasks import RopeTask, TaskSet
+
+    good = TaskSet.load(files["tasks"])
+    # Ropes scaled 100x: the world refuses the reset, so every episode records an error.
+    scaled = TaskSet(
+        [RopeTask(t.task_id, t.start_nodes_k3 * 100.0, t.source_start, t.seed) for t in good],
+        good.metadata,
+    )
+    path = scaled.save(tmp_path / "scaled.npz")
+    args = _bench_args(files, tmp_path / "out", policies="nn")
+    args[args.index("--task-set") + 1] = str(path)
+    rc = cli.main(args)
+    captured = capsys.readouterr()
+    recs = [
+        json.loads(line) for line in (tmp_path / "out" / "outcomes.jsonl").read_text().splitlines()
+    ]
+    assert recs and all(r["failure_kind"] == "error" for r in recs)
+    assert "wrong scale or units" in recs[0]["error"]
+    assert rc == 1 and "not a result" in captured.err
