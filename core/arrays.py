@@ -10,7 +10,7 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 
 
-def points_n3(name: str, arr: np.ndarray, min_points: int = 1) -> np.ndarray:
+def points_n3(name: str, arr: np.ndarray, min_points: int = 1, unit: str = "points") -> np.ndarray:
     """``arr`` as a float (n, 3) array with n >= min_points, all finite, else a named error.
 
     The one (n, 3) check of knotlab: clouds, rope nodes and task starts all go through it, so a
@@ -20,7 +20,7 @@ def points_n3(name: str, arr: np.ndarray, min_points: int = 1) -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 3:
         raise InvalidInputError(f"{name} must have shape (n, 3), got {a.shape}")
     if a.shape[0] < min_points:
-        raise InvalidInputError(f"{name} needs at least {min_points} points, got {a.shape[0]}")
+        raise InvalidInputError(f"{name}: need at least {min_points} {unit}, got {a.shape[0]}")
     if not np.all(np.isfinite(a)):
         bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
         raise InvalidInputError(f"{name} contains NaN or infinite values (rows {bad[:5].tolist()})")

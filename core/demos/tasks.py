@@ -38,7 +38,7 @@ class RopeTask:
     seed: int
 
     def __post_init__(self) -> None:
-        nodes = points_n3(f"task {self.task_id} start_nodes_k3", self.start_nodes_k3, 3)
+        nodes = points_n3(f"task {self.task_id} start_nodes_k3", self.start_nodes_k3, 3, "nodes")
         object.__setattr__(self, "start_nodes_k3", nodes)
 
 

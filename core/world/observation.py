@@ -68,7 +68,7 @@ _TRACKER_VOXEL = 0.01  # m
 
 def centreline_points(nodes_k3: np.ndarray) -> np.ndarray:
     """The rope's nodes and segment midpoints, in order along the rope: (2K - 1, 3)."""
-    nodes = points_n3("rope nodes", nodes_k3, min_points=2)
+    nodes = points_n3("rope nodes", nodes_k3, min_points=2, unit="nodes")
     out = np.empty((2 * nodes.shape[0] - 1, 3))
     out[0::2] = nodes
     out[1::2] = 0.5 * (nodes[:-1] + nodes[1:])

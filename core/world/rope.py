@@ -20,7 +20,7 @@ _PARALLEL_EPS = 1e-18
 
 def as_nodes(nodes_k3: np.ndarray, name: str = "rope nodes", min_nodes: int = 2) -> np.ndarray:
     """Validate a (K, 3) finite float array of rope nodes and return it as float64."""
-    return points_n3(name, nodes_k3, min_nodes)
+    return points_n3(name, nodes_k3, min_nodes, unit="nodes")
 
 
 def rope_length(nodes_k3: np.ndarray) -> float:
