@@ -34,9 +34,8 @@ def test_split_rejects_a_fraction_of_one() -> None:
         split_executions(5, 1.0, seed=0)
 
 
-@pytest.fixture(scope="module")
-def search() -> QModelSearch:
-    executions = mini_executions(3)
+def _small_search() -> QModelSearch:
+    """A 2 x 2 grid with 2 landmarks on the 3-demo mini library, one execution held out."""
     return QModelSearch(
         C=[1.0, 100.0],
         D=[1.0, 10.0],
@@ -44,7 +43,12 @@ def search() -> QModelSearch:
         validation_fraction=0.34,
         workers=1,
         progress=False,
-    ).fit(executions, mini_library(3))
+    )
+
+
+@pytest.fixture(scope="module")
+def search() -> QModelSearch:
+    return _small_search().fit(mini_executions(3), mini_library(3))
 
 
 def test_search_fits_every_grid_point_and_keeps_the_best(search: QModelSearch) -> None:
@@ -63,14 +67,7 @@ def test_search_fits_every_grid_point_and_keeps_the_best(search: QModelSearch) -
 
 
 def test_search_is_reproducible_with_the_same_random_state(search: QModelSearch) -> None:
-    again = QModelSearch(
-        C=[1.0, 100.0],
-        D=[1.0, 10.0],
-        landmarks=(2, 0),
-        validation_fraction=0.34,
-        workers=1,
-        progress=False,
-    ).fit(mini_executions(3), mini_library(3))
+    again = _small_search().fit(mini_executions(3), mini_library(3))
     assert again.best_model_.content_hash() == search.best_model_.content_hash()
 
 
