@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
-from knotlab.labeling_db.arrays import decode_array, encode_array
+from knotlab.labeling_db.arrays import decode_array
 from knotlab.labeling_db.errors import (
     CorruptDatabaseError,
     InvalidRecordError,
@@ -27,7 +27,7 @@ from knotlab.labeling_db.models import (
     utcnow,
 )
 from knotlab.labeling_db.records import ModelInfo, StateProvenance, StoredExecution
-from knotlab.labeling_db.rows import _check_json, _check_key, _new_state
+from knotlab.labeling_db.rows import _check_json, _check_key, _label_row, _new_state
 
 # ----------------------------------------------------------------------------- bulk I/O
 
@@ -101,23 +101,8 @@ def _write_batch(
     for ep, (it, step_states, dead_states) in zip(episodes, plans, strict=True):
         ex = it.execution
         for i, (step, state) in enumerate(zip(ex.steps, step_states, strict=True)):
-            rows.append(
-                Label(
-                    episode_id=ep.id,
-                    state_id=state.id,
-                    labeller_id=ep.labeller_id,
-                    step_index=step.step_index,
-                    chosen_demo=step.chosen_demo,
-                    candidates=list(step.candidates),
-                    candidate_scores=None
-                    if step.candidate_scores_c is None
-                    else encode_array(step.candidate_scores_c, name="candidate_scores_c"),
-                    ranked_by_model=step.model_version,
-                    outcome=step.outcome,
-                    source=ex.source,
-                    labelled_at=it.labelled_at[i] if it.labelled_at else now,
-                )
-            )
+            at = it.labelled_at[i] if it.labelled_at else now
+            rows.append(_label_row(ep, state.id, step, ex.source, at))
         for i, state in enumerate(dead_states):
             rows.append(DeadEnd(episode_id=ep.id, state_id=state.id, ordinal=i, created_at=now))
     s.add_all(rows)

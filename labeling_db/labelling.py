@@ -13,7 +13,6 @@ from sqlalchemy.orm import Session
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
-from knotlab.labeling_db.arrays import encode_array
 from knotlab.labeling_db.errors import (
     ConflictError,
     InvalidRecordError,
@@ -42,6 +41,7 @@ from knotlab.labeling_db.rows import (
     _check_key,
     _episode_info,
     _label_info,
+    _label_row,
     _labeller_id,
     _library_id,
     _new_state,
@@ -240,21 +240,7 @@ class LabellingStore(StoreBase):
                 sid = row.id
             elif s.get(RopeState, sid) is None:
                 raise RecordNotFoundError(f"{self.url}: no rope state with id {sid}")
-            label = Label(
-                episode_id=ep.id,
-                state_id=sid,
-                labeller_id=ep.labeller_id,
-                step_index=step.step_index,
-                chosen_demo=step.chosen_demo,
-                candidates=list(step.candidates),
-                candidate_scores=None
-                if step.candidate_scores_c is None
-                else encode_array(step.candidate_scores_c, name="candidate_scores_c"),
-                ranked_by_model=step.model_version,
-                outcome=step.outcome,
-                source=ep.source,
-                labelled_at=labelled_at or utcnow(),
-            )
+            label = _label_row(ep, sid, step, ep.source, labelled_at or utcnow())
             s.add(label)
             with self._conflicts(f"episode {episode_id} already has step {step.step_index}"):
                 s.flush()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -147,3 +148,22 @@ def _unlabelled_start_states():
         .exists()
     )
     return select(RopeState).where(RopeState.role == "start", ~taken)
+
+
+def _label_row(ep: Episode, state_id: int, step: Any, source: str, labelled_at: datetime) -> Label:
+    """The Label row of one labelled step (human labelling and bulk import build it alike)."""
+    return Label(
+        episode_id=ep.id,
+        state_id=state_id,
+        labeller_id=ep.labeller_id,
+        step_index=step.step_index,
+        chosen_demo=step.chosen_demo,
+        candidates=list(step.candidates),
+        candidate_scores=None
+        if step.candidate_scores_c is None
+        else encode_array(step.candidate_scores_c, name="candidate_scores_c"),
+        ranked_by_model=step.model_version,
+        outcome=step.outcome,
+        source=source,
+        labelled_at=labelled_at,
+    )
