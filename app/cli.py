@@ -16,6 +16,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_label",
     "knotlab.app.cmd_train",
     "knotlab.app.cmd_bench",
+    "knotlab.app.cmd_app",
 )
 
 

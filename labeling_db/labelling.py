@@ -53,6 +53,16 @@ from knotlab.labeling_db.store_base import StoreBase
 _PG_CLAIM_LOCK = 0x6B6E6F75  # serialises claiming the next unlabelled start state
 
 
+def _resume_nodes(nodes_k3: np.ndarray) -> list[list[float]]:
+    """Rope nodes as JSON for the episode's resume point (validated (k, 3), finite)."""
+    try:
+        checked = DeadEndState(np.zeros((1, 3)), nodes_k3).rope_nodes_k3
+    except InvalidInputError as exc:
+        raise InvalidRecordError(f"resume rope nodes: {exc}") from exc
+    assert checked is not None
+    return [[float(v) for v in row] for row in checked]
+
+
 class LabellingStore(StoreBase):
     """Labellers, libraries and start states, and human labelling one step at a time."""
 
@@ -209,8 +219,14 @@ class LabellingStore(StoreBase):
         state_id: int | None = None,
         provenance: StateProvenance | None = None,
         labelled_at: datetime | None = None,
+        next_nodes_k3: np.ndarray | None = None,
     ) -> LabelInfo:
-        """Append the next step's label to an in-progress episode (step 0 uses the start state)."""
+        """Append the next step's label to an in-progress episode (step 0 uses the start state).
+
+        ``next_nodes_k3``, the rope after the accepted step, is kept with the episode in the same
+        transaction so that an interrupted labelling session resumes from exactly there.
+        """
+        resume = None if next_nodes_k3 is None else _resume_nodes(next_nodes_k3)
         if not isinstance(step, LabelledStep):
             raise InvalidRecordError(f"step must be a LabelledStep, got {type(step)}")
         _check_key("chosen_demo", step.chosen_demo)
@@ -242,6 +258,8 @@ class LabellingStore(StoreBase):
                 raise RecordNotFoundError(f"{self.url}: no rope state with id {sid}")
             label = _label_row(ep, sid, step, ep.source, labelled_at or utcnow())
             s.add(label)
+            if resume is not None:
+                ep.meta = {**(ep.meta or {}), "resume_nodes": resume}
             with self._conflicts(f"episode {episode_id} already has step {step.step_index}"):
                 s.flush()
             return _label_info(label, ep, ep.labeller.name)
@@ -316,6 +334,10 @@ class LabellingStore(StoreBase):
             ep = self._locked_episode(s, label.episode_id)
             info = _label_info(label, ep, labeller)
             state_id, own_state = label.state_id, label.state_id != ep.start_state_id
+            undone = s.get(RopeState, state_id)
+            if undone is not None and undone.rope_nodes is not None:  # resume before that step
+                nodes = _state_record(undone).rope_nodes_k3
+                ep.meta = {**(ep.meta or {}), "resume_nodes": _resume_nodes(nodes)}
             s.delete(label)
             if ep.status == "completed":  # its last step is gone: it is being relabelled
                 ep.status, ep.ended_in_knot, ep.finished_at = "in_progress", False, None
@@ -340,6 +362,45 @@ class LabellingStore(StoreBase):
             return info
 
         return self._run(work, write=True)
+
+    def open_episode(self, labeller: str) -> tuple[EpisodeInfo, np.ndarray | None] | None:
+        """The labeller's newest in-progress human episode and the rope to resume it from.
+
+        The rope is the state after the last accepted step (None: resume from the start state).
+        """
+
+        def work(s: Session) -> tuple[EpisodeInfo, np.ndarray | None] | None:
+            ep = s.scalars(
+                select(Episode)
+                .join(Labeller, Episode.labeller_id == Labeller.id)
+                .where(
+                    Labeller.name == labeller,
+                    Episode.status == "in_progress",
+                    Episode.source == "human",
+                )
+                .order_by(Episode.id.desc())
+                .limit(1)
+            ).first()
+            if ep is None:
+                return None
+            info = _episode_info(s, ep)
+            nodes = (ep.meta or {}).get("resume_nodes") if info.n_labels else None
+            return info, None if nodes is None else np.asarray(nodes, dtype=float)
+
+        return self._run(work, write=False)
+
+    def start_task_ids(self) -> set[str]:
+        """Task ids of every queued start state (to register a task set only once)."""
+        return self._run(
+            lambda s: set(
+                s.scalars(
+                    select(RopeState.task_id).where(
+                        RopeState.role == "start", RopeState.task_id.is_not(None)
+                    )
+                )
+            ),
+            write=False,
+        )
 
     def episode(self, episode_id: int) -> EpisodeInfo:
         """One episode's bookkeeping."""

@@ -18,6 +18,7 @@ from knotlab.core.errors import KnotlabError
 from knotlab.core.failures import FailureKind
 from knotlab.core.registration import EXACT, Registration, RegistrationParams, register
 from knotlab.core.registration.transfer import warp_trajectory
+from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.stages import Stage
 from knotlab.core.world.trajectory import GripperTrajectory
 
@@ -117,15 +118,24 @@ class ActionOutcome:
         return self.failure_kind is FailureKind.EXPLODED
 
 
-def apply_demo(world, transferer: DemoTransferer, cloud_n3: np.ndarray, demo_index: int):
-    """Plan demo ``demo_index`` onto the cloud, execute it in ``world``, analyse the result."""
+def apply_demo(
+    world,
+    transferer: DemoTransferer,
+    cloud_n3: np.ndarray,
+    demo_index: int,
+    frames: FrameRecorder | None = None,
+):
+    """Plan demo ``demo_index`` onto the cloud, execute it in ``world``, analyse the result.
+
+    A ``frames`` recorder records the execution for animation (``outcome.execution.frames``).
+    """
     from knotlab.core.world.stages import rope_stage
 
     plan = transferer.plan(cloud_n3, demo_index)
     execution = None
     if plan.ok:
         t0 = time.perf_counter()
-        execution = world.execute(plan.trajectory)
+        execution = world.execute(plan.trajectory, frames=frames)
         plan.timings["execute_s"] = time.perf_counter() - t0
     nodes = world.rope_nodes()
     if np.all(np.isfinite(nodes)):

@@ -21,6 +21,7 @@ from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.selection.ranking import demo_scores, rank_order
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
     from knotlab.core.world.sim import RopeWorld
@@ -67,10 +68,10 @@ class Policy(ABC):
         """Pick a demo for the state in ``ctx``."""
 
 
-def _masked(scores_a: np.ndarray, ok_a: np.ndarray) -> np.ndarray:
-    out = np.where(np.asarray(ok_a, bool), scores_a, -np.inf)
-    out[~np.isfinite(out)] = -np.inf
-    return out
+def _best_of(scores_a: np.ndarray) -> Decision:
+    """The top-ranked demo (demo 0 when none is usable: the episode then records the failure)."""
+    order = rank_order(scores_a)
+    return Decision(int(order[0]) if len(order) else 0, scores_a)
 
 
 class NearestNeighbourPolicy(Policy):
@@ -79,9 +80,8 @@ class NearestNeighbourPolicy(Policy):
     name = "nn"
 
     def choose(self, ctx: StepContext) -> Decision:
-        """argmin_a nn_cost(a)."""
-        scores = _masked(-ctx.scan.nn_cost_a, ctx.scan.ok_a)
-        return Decision(int(np.argmax(scores)), scores)
+        """argmin_a nn_cost(a) (the first of the app's ranking without a model)."""
+        return _best_of(demo_scores(ctx.scan, None, None))
 
 
 class GreedyPolicy(Policy):
@@ -93,9 +93,8 @@ class GreedyPolicy(Policy):
         self.model = model
 
     def choose(self, ctx: StepContext) -> Decision:
-        """argmax_a Q(s, a) over demos whose registration succeeded."""
-        q = _masked(self.model.q(ctx.phi_ad), ctx.scan.ok_a)
-        return Decision(int(np.argmax(q)), q)
+        """argmax_a Q(s, a) over usable demos: the first of the app's ranking (one code path)."""
+        return _best_of(demo_scores(ctx.scan, ctx.phi_ad, self.model))
 
 
 @dataclass
@@ -130,13 +129,13 @@ class LookaheadPolicy(Policy):
 
     def _q(self, featurizer: LibraryFeaturizer, cloud_n3: np.ndarray) -> np.ndarray:
         phi, scan = featurizer.features(cloud_n3)
-        return _masked(self.model.q(phi), scan.ok_a)
+        return demo_scores(scan, phi, self.model)
 
     def choose(self, ctx: StepContext) -> Decision:
         """Beam search from the current state; returns the best root action."""
         world = ctx.world
         root_snapshot = world.snapshot()
-        root_q = _masked(self.model.q(ctx.phi_ad), ctx.scan.ok_a)
+        root_q = demo_scores(ctx.scan, ctx.phi_ad, self.model)
         frontier = [_Node(root_snapshot, ctx.cloud_n3, root_q, -1)]
         backed: dict[int, tuple[int, float]] = {}  # root action -> (depth reached, value)
         root_outcomes: dict[int, ActionOutcome] = {}

@@ -79,9 +79,8 @@ class QModel:
             h.text(self.landmarks.content_hash())
         return h.hexdigest()
 
-    def save(self, path: str | Path) -> Path:
-        """Write the model to a versioned .npz file; returns the path."""
-        path = Path(path)
+    def to_parts(self) -> tuple[dict[str, np.ndarray], dict]:
+        """The model as named arrays and a JSON-able header (for a file or a database row)."""
         meta = {
             "format": "knotlab-qmodel",
             "version": QMODEL_FORMAT_VERSION,
@@ -91,43 +90,26 @@ class QModel:
             "metrics": self.metrics,
             "hash": self.content_hash(),
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(
-                fh,
-                weights_d=self.weights_d,
-                feature_mean_d=self.feature_mean_d,
-                feature_scale_d=self.feature_scale_d,
-                meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-                **(self.landmarks.to_arrays() if self.landmarks is not None else {}),
-            )
-        tmp.replace(path)  # atomic: a crash never leaves a half-written model
-        return path
+        arrays = {
+            "weights_d": self.weights_d,
+            "feature_mean_d": self.feature_mean_d,
+            "feature_scale_d": self.feature_scale_d,
+            **(self.landmarks.to_arrays() if self.landmarks is not None else {}),
+        }
+        return arrays, meta
 
     @classmethod
-    def load(cls, path: str | Path) -> QModel:
-        """Read and validate a model written by :meth:`save`."""
-        path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: np.array(data[k]) for k in data.files}
-        except FileNotFoundError:
-            raise
-        except Exception as exc:
-            raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
-        missing = {"weights_d", "feature_mean_d", "feature_scale_d", "meta"} - set(arrays)
+    def from_parts(cls, arrays: dict[str, np.ndarray], meta: dict, where: str) -> QModel:
+        """Inverse of :meth:`to_parts`; checks format, version and content hash (``where`` names
+        the source in errors)."""
+        missing = {"weights_d", "feature_mean_d", "feature_scale_d"} - set(arrays)
         if missing:
-            raise CorruptFileError(f"{path}: model file lacks {sorted(missing)}")
-        try:
-            meta = json.loads(arrays["meta"].tobytes().decode())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise CorruptFileError(f"{path}: model metadata is not valid JSON") from exc
+            raise CorruptFileError(f"{where}: model lacks {sorted(missing)}")
         if meta.get("format") != "knotlab-qmodel":
-            raise CorruptFileError(f"{path}: not a knotlab model (format {meta.get('format')!r})")
+            raise CorruptFileError(f"{where}: not a knotlab model (format {meta.get('format')!r})")
         if meta.get("version") != QMODEL_FORMAT_VERSION:
             raise CorruptFileError(
-                f"{path}: model format version {meta.get('version')} is not supported "
+                f"{where}: model format version {meta.get('version')} is not supported "
                 f"(this knotlab reads version {QMODEL_FORMAT_VERSION})"
             )
         try:
@@ -143,7 +125,38 @@ class QModel:
                 landmarks,
             )
         except (KeyError, InvalidInputError) as exc:
-            raise CorruptFileError(f"{path}: invalid model contents ({exc})") from exc
+            raise CorruptFileError(f"{where}: invalid model contents ({exc})") from exc
         if meta.get("hash") != model.content_hash():
-            raise CorruptFileError(f"{path}: content hash mismatch (file altered or truncated)")
+            raise CorruptFileError(f"{where}: content hash mismatch (altered or truncated)")
         return model
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model to a versioned .npz file; returns the path."""
+        path = Path(path)
+        arrays, meta = self.to_parts()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            payload = {"meta": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays}
+            np.savez(fh, **payload)  # type: ignore[arg-type]
+        tmp.replace(path)  # atomic: a crash never leaves a half-written model
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> QModel:
+        """Read and validate a model written by :meth:`save`."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: np.array(data[k]) for k in data.files}
+        except FileNotFoundError:
+            raise
+        except Exception as exc:
+            raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
+        if "meta" not in arrays:
+            raise CorruptFileError(f"{path}: model file lacks ['meta']")
+        try:
+            meta = json.loads(arrays.pop("meta").tobytes().decode())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise CorruptFileError(f"{path}: model metadata is not valid JSON") from exc
+        return cls.from_parts(arrays, meta, str(path))

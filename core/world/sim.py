@@ -28,6 +28,7 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.failures import FailureKind
 from knotlab.core.voxels import voxel_groups
+from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
 from knotlab.core.world.rope import as_nodes, resample_by_arc_length, rope_length
 from knotlab.core.world.trajectory import GRIPPERS, GripperTrajectory
 
@@ -143,6 +144,7 @@ class ExecutionResult:
     sim_steps: int
     sim_time: float  # s simulated
     wall_time: float = field(default=0.0, compare=False)  # s of wall clock
+    frames: ExecutionFrames | None = field(default=None, compare=False)  # when asked for
 
     @property
     def failure_kind(self) -> FailureKind | None:
@@ -461,8 +463,16 @@ class RopeWorld:
         p.stepSimulation(physicsClientId=self._client)
         self._sim_time += self.params.timestep
 
-    def _settle_steps(self, seconds: float, early_stop: bool) -> tuple[int, str | None, float]:
-        """Step with no grasp for up to `seconds`; stop early once everything is at rest."""
+    def _settle_steps(
+        self,
+        seconds: float,
+        early_stop: bool,
+        frames: tuple[FrameRecorder, float, np.ndarray] | None = None,
+    ) -> tuple[int, str | None, float]:
+        """Step with no grasp for up to `seconds`; stop early once everything is at rest.
+
+        ``frames`` = (recorder, execution start time, gripper positions) records the settle too.
+        """
         prm = self.params
         n_max = math.ceil(seconds / prm.timestep - 1e-9)
         block = max(prm.check_every, 12)
@@ -470,8 +480,10 @@ class RopeWorld:
         steps, stretch = 0, 0.0
         while steps < n_max:
             n = min(block, n_max - steps)
-            for _ in range(n):
+            for k in range(n):
                 self._step()
+                if frames is not None and (steps + k + 1) % frames[0].every == 0:
+                    self._record(frames[0], frames[1], frames[2], (False, False))
             steps += n
             failure, s, new_pos = self._health(pos, n)
             stretch = max(stretch, s)
@@ -520,12 +532,30 @@ class RopeWorld:
         )
         return link, cons, centre - point_3
 
-    def execute(self, traj: GripperTrajectory, settle_time: float | None = None) -> ExecutionResult:
+    def _record(self, rec: FrameRecorder, t0: float, grippers_g3, closed_g) -> None:
+        """Append the rope's current nodes (read from PyBullet) and the grippers to ``rec``."""
+        cid = self._client
+        poses = [p.getBasePositionAndOrientation(b, physicsClientId=cid) for b in self._links]
+        pos = np.array([xyz for xyz, _ in poses])
+        zeros = np.zeros_like(pos)
+        quats = np.array([q for _, q in poses])
+        lower, upper = _link_ends(SimSnapshot(pos, quats, zeros, zeros, 0.0, self.params))
+        nodes = np.concatenate([lower[:1], 0.5 * (upper[:-1] + lower[1:]), upper[-1:]], axis=0)
+        rec.add(self._sim_time - t0, nodes, grippers_g3, closed_g)
+
+    def execute(
+        self,
+        traj: GripperTrajectory,
+        settle_time: float | None = None,
+        frames: FrameRecorder | None = None,
+    ) -> ExecutionResult:
         """Move the grippers along `traj`, grasping and releasing per its closed flags, then settle.
 
         Waypoint segments take their nominal duration, stretched where needed so that no gripper
         exceeds ``max_speed`` (3-D) or ``max_descent_speed`` (downwards). Never raises on a
-        simulation blow-up: that ends the run with ``ok=False``.
+        simulation blow-up: that ends the run with ``ok=False``. With a ``frames`` recorder the
+        rope and grippers are recorded every ``frames.dt`` simulated seconds for animation
+        (reading poses only: the physics is the same with or without frames).
         """
         if not isinstance(traj, GripperTrajectory):
             raise InvalidInputError(
@@ -534,9 +564,14 @@ class RopeWorld:
         settle = self.gripper.settle_time if settle_time is None else float(settle_time)
         if not (np.isfinite(settle) and settle >= 0):
             raise InvalidInputError(f"settle_time must be finite and >= 0, got {settle_time}")
+        rec = frames
+        if rec is not None:
+            rec.start(self.params.timestep)
         wall0 = time.perf_counter()
         state = self._state()
         if self._broken is not None or not np.all(np.isfinite(state.positions_l3)):
+            if rec is not None:
+                rec.finished = True
             return ExecutionResult(False, "exploded", (), (), math.inf, 0, 0.0, 0.0)
         self._build(state)
         t0 = self._sim_time
@@ -563,6 +598,8 @@ class RopeWorld:
                 was_closed[g] = want
 
         apply_flags(0)
+        if rec is not None:
+            self._record(rec, t0, pos_gt3[:, 0], [h is not None for h in held])
         last_pos = self._positions()
         since_check = 0
         for t in range(1, traj.n_waypoints):
@@ -587,6 +624,9 @@ class RopeWorld:
                 self._step()
                 steps += 1
                 since_check += 1
+                if rec is not None and steps % rec.every == 0:
+                    grip_g3 = start_g3 + delta_g3 * (k / n_steps)
+                    self._record(rec, t0, grip_g3, [h is not None for h in held])
                 if since_check == prm.check_every:
                     failure, stretch, last_pos = self._health(last_pos, since_check)
                     max_stretch = max(max_stretch, stretch)
@@ -599,13 +639,19 @@ class RopeWorld:
         for g in range(2):
             self._release(held, g)
         if failure is None:
-            n, failure, stretch = self._settle_steps(settle, early_stop=True)
+            at_rest = (rec, t0, pos_gt3[:, -1]) if rec is not None else None
+            n, failure, stretch = self._settle_steps(settle, early_stop=True, frames=at_rest)
             steps += n
             max_stretch = max(max_stretch, stretch)
         if failure in ("exploded", "stretch"):
             self._broken = failure
-        elif misgrasps:
-            failure = f"misgrasp:{misgrasps[0]}"
+        else:
+            if rec is not None:  # the rope at rest: the animation's last frame
+                self._record(rec, t0, pos_gt3[:, -1], (False, False))
+            if misgrasps:
+                failure = f"misgrasp:{misgrasps[0]}"
+        if rec is not None:
+            rec.finished = True
         return ExecutionResult(
             ok=failure is None,
             failure=failure,
@@ -615,6 +661,7 @@ class RopeWorld:
             sim_steps=steps,
             sim_time=self._sim_time - t0,
             wall_time=time.perf_counter() - wall0,
+            frames=None if rec is None else rec.frames(),
         )
 
     def _release(self, held: list, g: int) -> None:

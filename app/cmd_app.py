@@ -1,0 +1,136 @@
+"""`knotlab app`: serve the labelling web app (viser) on this machine.
+
+With no flags it is useful at once: the SQLite file knotlab.db is created and migrated, the
+shipped library and the level's training starts are registered in it, and candidates are ranked
+by the newest stored model, else the shipped default model, else by registration cost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from knotlab.app import defaults
+from knotlab.app.options import add_db_argument, db_url, fail
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number 0-65535, got {text!r}")
+    return port
+
+
+def _top_k(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if not 1 <= k <= 9:
+        raise argparse.ArgumentTypeError(f"expected 1-9 candidates (hotkeys 1-9), got {text!r}")
+    return k
+
+
+def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
+    """Open the store, load library, starts and models, and start serving; returns the app."""
+    from knotlab.app.web.resources import load_resources
+    from knotlab.app.web.server import LabelApp, load_models
+    from knotlab.labeling_db.store import open_store
+
+    library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
+    resources = load_resources(
+        library_path, defaults.task_set_path(args.level, "train"), top_k=args.top_k
+    )
+    store = open_store(db_url(args), create=True, auto_upgrade=True)
+    added = resources.register_starts(store, args.level)
+    if added:
+        print(f"registered {added} {args.level} training starts in {store.url}")
+    ranking = load_models(resources, store, args.model, defaults.MODEL_PATH)
+    print(f"ranking candidates with {ranking}")
+    print("warming up the registration kernel...", flush=True)
+    resources.warm_up()
+    return LabelApp(
+        store,
+        resources,
+        library_path,
+        host=args.host,
+        port=args.port,
+        lite_rendering=lite_rendering,
+    )
+
+
+def _run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.host not in LOOPBACK:
+        print(
+            f"warning: serving on {args.host}: anyone who can reach this machine on that "
+            "network can label with your database",
+            file=sys.stderr,
+        )
+    from knotlab.core.errors import KnotlabError
+
+    try:
+        app = build_app(args, lite_rendering=args.lite_rendering)
+    except (KnotlabError, FileNotFoundError, OSError) as exc:
+        return fail(exc)
+    if app.server.get_port() != args.port and args.port != 0:
+        print(f"note: port {args.port} was busy; serving on {app.server.get_port()}")
+    print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        while not stop.is_set():
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    print("stopping: closing tabs (no half-written labels)...", flush=True)
+    app.stop()
+    app.store.close()
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `knotlab app` to the command line."""
+    p = subparsers.add_parser(
+        "app",
+        help="serve the labelling web app (experts label in a browser)",
+        description=__doc__.split("\n\n")[0],
+    )
+    add_db_argument(p)
+    p.add_argument(
+        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
+    )
+    p.add_argument(
+        "--level", choices=defaults.LEVELS, default="main", help="whose training starts to label"
+    )
+    p.add_argument(
+        "--model",
+        default=None,
+        metavar="VERSION|PATH",
+        help="rank with this stored model version or model file (default: the newest stored "
+        "model, else the shipped default, else nearest neighbour)",
+    )
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="interface to serve on (default loopback only; another host is reachable by "
+        "anyone on that network)",
+    )
+    p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
+    p.add_argument("--top-k", type=_top_k, default=5, help="candidates shown per state (1-9)")
+    p.add_argument(
+        "--lite-rendering",
+        action="store_true",
+        help="no environment map or shadows (software WebGL, e.g. headless browsers)",
+    )
+    p.set_defaults(func=_run)

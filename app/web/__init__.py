@@ -1,0 +1,1 @@
+"""The labelling web app (viser): server, per-tab sessions, scene and panels."""

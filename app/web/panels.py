@@ -1,0 +1,205 @@
+"""One tab's GUI: name prompt, status, ranked candidate list, actions with hotkeys, progress,
+retrain and model list. Widgets only: every action calls back into the tab controller.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import viser
+
+from knotlab.app.web.scene import candidate_label, rank_colour
+from knotlab.app.web.session import Phase, SessionView
+
+MAX_LISTED = 9  # hotkeys 1-9 select by rank
+
+
+@dataclass(frozen=True)
+class Actions:
+    """What the panels' buttons and hotkeys call."""
+
+    select: Callable[[int], None]
+    try_: Callable[[], None]
+    accept: Callable[[], None]
+    reject: Callable[[], None]
+    dead_end: Callable[[], None]
+    resample: Callable[[], None]
+    undo: Callable[[], None]
+    retrain: Callable[[], None]
+    use_model: Callable[[str | None], None]  # a model version; None: nearest neighbour
+    toggle_warped: Callable[[bool], None]
+
+
+def _bind(fn: Callable[[int], None], arg: int) -> Callable[[], None]:
+    """fn with its argument fixed (a closure per rank: a lambda in a loop would share r)."""
+    return lambda: fn(arg)
+
+
+def _call_with(fn: Callable[..., None], *args: object) -> Callable[[object], None]:
+    """An event callback that ignores the event and calls ``fn(*args)``."""
+
+    def callback(_event: object) -> None:
+        fn(*args)
+
+    return callback
+
+
+class LabelPanels:
+    """The GUI of one tab."""
+
+    def __init__(self, client: viser.ClientHandle, actions: Actions) -> None:
+        self.client = client
+        self.actions = actions
+        gui = client.gui
+        icon = viser.Icon
+        gui.set_panel_label("knotlab: label demonstrations")
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Label", icon=icon.HAND_CLICK):
+            self.status = gui.add_markdown("Connecting...")
+            with gui.add_folder("Candidates (ranked)"):
+                self.cand_buttons = [
+                    gui.add_button(f"#{r}", visible=False, hint=f"select rank {r} (key {r})")
+                    for r in range(1, MAX_LISTED + 1)
+                ]
+                self.show_warped = gui.add_checkbox("Show warped demo cloud", False)
+            with gui.add_folder("Actions"):
+                self.try_button = gui.add_button("Try (Enter)", color="blue", icon=icon.PLAYER_PLAY)
+                self.accept_button = gui.add_button("Accept (Y)", color="green", icon=icon.CHECK)
+                self.reject_button = gui.add_button("Reject (N)", color="red", icon=icon.X)
+                self.dead_button = gui.add_button("Dead end (F)", color="orange", icon=icon.SKULL)
+                self.resample_button = gui.add_button("New rope (R)", icon=icon.REFRESH)
+                self.undo_button = gui.add_button("Undo last label (U)", icon=icon.ARROW_BACK_UP)
+            with gui.add_folder("Progress"):
+                self.progress = gui.add_markdown("")
+        with tabs.add_tab("Model", icon=icon.BRAIN):
+            self.model_status = gui.add_markdown("")
+            self.retrain_button = gui.add_button("Retrain on all labels", icon=icon.PLAYER_PLAY)
+            self.retrain_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
+            self.retrain_status = gui.add_markdown("")
+            self.model_dropdown = gui.add_dropdown("Rank with", ("nearest neighbour",))
+            self.model_table = gui.add_markdown("")
+        self._model_options: dict[str, str | None] = {}
+        self._syncing = False
+        self._wire()
+
+    def _wire(self) -> None:
+        a = self.actions
+        for r, button in enumerate(self.cand_buttons, start=1):
+            button.on_click(_call_with(a.select, r))
+        self.try_button.on_click(lambda _e: a.try_())
+        self.accept_button.on_click(lambda _e: a.accept())
+        self.reject_button.on_click(lambda _e: a.reject())
+        self.dead_button.on_click(lambda _e: a.dead_end())
+        self.resample_button.on_click(lambda _e: a.resample())
+        self.undo_button.on_click(lambda _e: a.undo())
+        self.retrain_button.on_click(lambda _e: a.retrain())
+        self.show_warped.on_update(lambda _e: a.toggle_warped(bool(self.show_warped.value)))
+
+        @self.model_dropdown.on_update
+        def _(_e) -> None:
+            if not self._syncing and self.model_dropdown.value in self._model_options:
+                a.use_model(self._model_options[self.model_dropdown.value])
+
+        gui = self.client.gui
+        keys: list[tuple[str, str, Callable[[], None]]] = [
+            ("Try the selected candidate", "enter", a.try_),
+            ("Accept", "Y", a.accept),
+            ("Reject", "N", a.reject),
+            ("Dead end", "F", a.dead_end),
+            ("New rope", "R", a.resample),
+            ("Undo last label", "U", a.undo),
+        ]
+        for r in range(1, MAX_LISTED + 1):
+            keys.append((f"Select rank {r}", str(r), _bind(a.select, r)))
+        self.commands = []
+        for label, key, fn in keys:
+            cmd = gui.add_command(label, hotkey=key)  # type: ignore[arg-type]
+            cmd.on_trigger(_call_with(fn))
+            self.commands.append(cmd)
+
+    # ------------------------------------------------------------------ name
+    def ask_name(self, on_name: Callable[[str], None]) -> None:
+        """A modal asking the labeller's name once per browser."""
+        modal = self.client.gui.add_modal("Who is labelling?")
+        with modal:
+            self.client.gui.add_markdown(
+                "Your name is stored with every label you make (and kept in this browser)."
+            )
+            name = self.client.gui.add_text("Your name", "")
+            start = self.client.gui.add_button("Start labelling", color="green")
+
+        @start.on_click
+        def _(_e) -> None:
+            value = name.value.strip()
+            if value:
+                modal.close()
+                on_name(value)
+
+    # ------------------------------------------------------------------ state
+    def show(self, view: SessionView) -> None:
+        """Refresh status, candidate list and which actions are enabled."""
+        phase = view.phase
+        where = f"task `{view.task_id}`" if view.task_id else "no rope"
+        lines = [
+            f"**{view.labeller}** · {where} · step **{view.step_index + 1}** of {view.max_steps}",
+            f"ranked by: {view.model}",
+            f"*{phase.value}*" + (f": {view.message}" if view.message else ""),
+        ]
+        if view.last_try is not None:
+            t = view.last_try
+            lines.append(f"tried #{t.rank} {t.demo_key}: **{t.word}** ({t.wall_s:.1f} s)")
+        self.status.content = "  \n".join(lines)
+        shown = {c.ranked.rank: c for c in view.candidates}
+        for r, button in enumerate(self.cand_buttons, start=1):
+            c = shown.get(r)
+            button.visible = c is not None
+            if c is None:
+                continue
+            rejected = r in view.rejected
+            cost = f"cost {c.ranked.nn_cost:.3f}"
+            button.label = candidate_label(c) + f" · {cost}" + (" · rejected" if rejected else "")
+            button.color = "gray" if rejected else rank_colour(r)
+            button.icon = viser.Icon.ARROW_RIGHT if r == view.selected else None
+            button.disabled = phase is not Phase.CHOOSING or rejected
+        choosing, judging = phase is Phase.CHOOSING, phase is Phase.JUDGING
+        self.try_button.disabled = not (choosing and view.selected is not None)
+        acceptable = judging and view.last_try is not None and view.last_try.acceptable
+        self.accept_button.disabled = not acceptable
+        self.reject_button.disabled = not judging
+        self.dead_button.disabled = not judging
+        self.resample_button.disabled = phase in (Phase.TRYING, Phase.NO_STARTS)
+        self.undo_button.disabled = phase is Phase.TRYING
+
+    def show_progress(self, today: int, total: int, starts_left: int, view: SessionView) -> None:
+        """Labels today and in total, starts left, step within the episode."""
+        self.progress.content = (
+            f"labels today: **{today}** · in total: **{total}**  \n"
+            f"training starts left: **{starts_left}**  \n"
+            f"this episode: step {view.step_index + 1} of {view.max_steps}"
+            + ("".join(f"  \n· {h}" for h in view.history[-5:]))
+        )
+
+    # ------------------------------------------------------------------ models
+    def show_models(self, rows: list[tuple[str, str | None, str]], current: str | None) -> None:
+        """The model list (label, version, description) and the dropdown to switch."""
+        self._model_options = {label: version for label, version, _ in rows}
+        self._syncing = True
+        try:
+            self.model_dropdown.options = tuple(self._model_options)
+            for label, version, _ in rows:
+                if version == current:
+                    self.model_dropdown.value = label  # type: ignore[misc]
+        finally:
+            self._syncing = False
+        table = ["| model | trained | labels | val top-1 | V-AUC |", "|---|---|---|---|---|"]
+        table += [desc for _, _, desc in rows if desc]
+        self.model_table.content = "\n".join(table)
+
+    def show_retrain(self, running: bool, text: str, fraction: float) -> None:
+        """Retrain progress: bar, stage text, button state."""
+        self.retrain_bar.visible = running
+        percent = max(0.0, min(100.0, 100.0 * fraction))
+        self.retrain_bar.value = percent  # type: ignore[misc]
+        self.retrain_status.content = text
+        self.retrain_button.disabled = running

@@ -1,0 +1,166 @@
+"""What every labelling tab shares: the library, the level's training starts, the ranking models.
+
+Read-only after start-up except the model list, which grows when a retrain finishes; its lock
+makes "switch to the new model" atomic for every tab.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from knotlab.core.demos.library import DemoLibrary
+from knotlab.core.demos.tasks import TaskSet
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration.planner import DemoTransferer
+from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.selection.qmodel import QModel
+from knotlab.labeling_db.records import StateProvenance
+from knotlab.labeling_db.store import Store
+
+
+@dataclass(frozen=True, eq=False)
+class RankingModel:
+    """A model the app can rank with (None model: nearest neighbour) and its featurizer."""
+
+    version: str | None  # content hash; None for nearest-neighbour ranking
+    source: str  # "store", a file path, or "nearest neighbour"
+    model: QModel | None
+    featurizer: LibraryFeaturizer
+
+    @property
+    def label(self) -> str:
+        """How the GUI names it."""
+        if self.model is None:
+            return "nearest neighbour (no model)"
+        return f"{self.version} ({self.source})"
+
+
+def qmodel_from_store(store: Store, version: str | None = None) -> QModel:
+    """Rebuild a stored model as a QModel (newest when version is None); hash checked."""
+    record = store.load_model(version)
+    info = record.info
+    meta = {
+        "format": "knotlab-qmodel",
+        "version": int(info.params.get("format_version", 1)),
+        "bias": info.params.get("bias"),
+        "feature_spec": info.feature_spec,
+        "hyperparameters": info.hyperparameters,
+        "metrics": info.metrics,
+        "hash": info.version,
+    }
+    return QModel.from_parts(dict(record.arrays), meta, f"{store.url} model {info.version}")
+
+
+def save_qmodel_to_store(
+    store: Store, model: QModel, library_hash: str, trained_on: list[str]
+) -> str:
+    """Store a QModel under its content hash (no-op if already stored); returns the version."""
+    version = model.content_hash()
+    if any(m.version == version for m in store.list_models()):
+        return version
+    arrays, meta = model.to_parts()
+    store.save_model(
+        version,
+        arrays=arrays,
+        hyperparameters=meta["hyperparameters"],
+        feature_spec=meta["feature_spec"],
+        params={"bias": meta["bias"], "format_version": meta["version"]},
+        metrics=meta["metrics"],
+        library_hash=library_hash,
+        trained_on=trained_on,
+    )
+    return version
+
+
+class AppResources:
+    """The library, the level's training starts, and the ranking models every tab can use."""
+
+    def __init__(self, library: DemoLibrary, tasks: TaskSet, *, top_k: int = 5) -> None:
+        if top_k < 1:
+            raise InvalidInputError(f"--top-k must be >= 1, got {top_k}")
+        self.library = library
+        self.library_hash = library.content_hash()
+        self.tasks = tasks
+        self.top_k = top_k
+        self.transferer = DemoTransferer(library)
+        self._nn_featurizer = LibraryFeaturizer(library)
+        self._lock = threading.Lock()
+        self._models: dict[str, RankingModel] = {}
+        self._current: RankingModel = RankingModel(
+            None, "nearest neighbour", None, self._nn_featurizer
+        )
+
+    # --- models
+    def add_model(self, model: QModel, source: str) -> RankingModel:
+        """Make a model available (refused when it does not fit the library); returns it."""
+        featurizer = LibraryFeaturizer.for_model(self.library, model)
+        ranking = RankingModel(model.content_hash(), source, model, featurizer)
+        with self._lock:
+            self._models.setdefault(ranking.version or "", ranking)
+            return self._models[ranking.version or ""]
+
+    def use(self, version: str | None) -> RankingModel:
+        """Rank with model ``version`` from now on (None: nearest neighbour)."""
+        with self._lock:
+            if version is None:
+                self._current = RankingModel(None, "nearest neighbour", None, self._nn_featurizer)
+            elif version not in self._models:
+                raise InvalidInputError(f"no model {version!r} loaded in the app")
+            else:
+                self._current = self._models[version]
+            return self._current
+
+    @property
+    def current(self) -> RankingModel:
+        """The model new states are ranked by."""
+        with self._lock:
+            return self._current
+
+    def models(self) -> list[RankingModel]:
+        """Every loaded model, in the order they were added."""
+        with self._lock:
+            return list(self._models.values())
+
+    def warm_up(self) -> None:
+        """Prepare the library side of the scan (and compile the kernel) before a tab waits."""
+        cloud = self.library[0].pre_cloud_n3
+        for ranking in {id(r.featurizer): r for r in [self.current, *self.models()]}.values():
+            ranking.featurizer.features(cloud) if ranking.model else ranking.featurizer.scan(cloud)
+
+    # --- start states
+    def register_starts(self, store: Store, level: str) -> int:
+        """Queue the level's training starts in the store once; returns how many were added."""
+        known = store.start_task_ids()
+        todo = [t for t in self.tasks if t.task_id not in known]
+        if not todo:
+            return 0
+        from knotlab.core.world.sim import RopeWorld
+
+        clouds = []
+        with RopeWorld() as world:  # the cloud a tab will observe, so step 0's label matches it
+            for t in todo:
+                world.reset(np.asarray(t.start_nodes_k3))
+                clouds.append(self._nn_featurizer.observe(world))
+        store.register_library(self.library_hash, name=f"{level} library")
+        store.add_start_states(
+            clouds,
+            rope_nodes_k3=[t.start_nodes_k3 for t in todo],
+            provenance=[StateProvenance(t.task_id, 0, None) for t in todo],  # task id names it
+        )
+        return len(todo)
+
+
+def load_resources(library_path: Path, tasks_path: Path, top_k: int) -> AppResources:
+    """Library and task set from files (the task set must be a training split)."""
+    library = DemoLibrary.load(library_path)
+    tasks = TaskSet.load(tasks_path)
+    if tasks.split != "train":
+        raise InvalidInputError(
+            f"{tasks_path}: the app labels training starts only, this task set is the "
+            f"{tasks.split!r} split"
+        )
+    return AppResources(library, tasks, top_k=top_k)

@@ -1,0 +1,212 @@
+"""The labelling app's server: one viser server, one LabelTab per connected browser tab.
+
+Owns what tabs share: the store, the resources (library, starts, models) and the retrain job.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import threading
+from pathlib import Path
+
+import viser
+
+from knotlab.app.web.jobs import RetrainJob, RetrainReport
+from knotlab.app.web.resources import AppResources, qmodel_from_store
+from knotlab.app.web.tab import LabelTab
+from knotlab.labeling_db.store import Store
+
+log = logging.getLogger(__name__)
+
+
+class LabelApp:
+    """The running app: viser server, tabs, store, models and retraining."""
+
+    def __init__(
+        self,
+        store: Store,
+        resources: AppResources,
+        library_path: Path,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        lite_rendering: bool = False,
+    ) -> None:
+        self.store = store
+        self.resources = resources
+        self.retrain_job = RetrainJob(store.url, str(library_path))
+        self._retrain_text = ""
+        self._retrain_fraction = 0.0
+        self._tabs: dict[int, LabelTab] = {}
+        self._tabs_lock = threading.Lock()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when quiet
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.gui.configure_theme(control_width="large", dark_mode=False)
+        if lite_rendering:  # software WebGL (headless tests): no HDRI stall, no shadows
+            self.server.scene.configure_environment_map(None)
+            self.server.scene.configure_default_lights(True, cast_shadow=False)
+        self.server.initial_camera.position = (0.0, -0.9, 0.8)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    @property
+    def url(self) -> str:
+        """Where the app is served."""
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def tabs(self) -> list[LabelTab]:
+        """The connected tabs."""
+        with self._tabs_lock:
+            return list(self._tabs.values())
+
+    def tab(self, client_id: int) -> LabelTab | None:
+        """The tab of one client id."""
+        with self._tabs_lock:
+            return self._tabs.get(client_id)
+
+    def _connect(self, client: viser.ClientHandle) -> None:
+        tab = LabelTab(self, client)
+        with self._tabs_lock:
+            self._tabs[client.client_id] = tab
+        tab.open()
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        with self._tabs_lock:
+            tab = self._tabs.pop(client.client_id, None)
+        if tab is not None:
+            tab.close()
+
+    # ------------------------------------------------------------------ models
+    def model_rows(self) -> list[tuple[str, str | None, str]]:
+        """(dropdown label, version, table row) for every model the tabs can rank with."""
+        stored = {m.version: m for m in self.store.list_models()}
+        rows: list[tuple[str, str | None, str]] = [("nearest neighbour", None, "")]
+        for ranking in self.resources.models():
+            info = stored.get(ranking.version or "")
+            m = ranking.model.metrics if ranking.model is not None else {}
+            run = m.get("training_run", {}) if isinstance(m, dict) else {}
+            val = run.get("validation", {}) if isinstance(run, dict) else {}
+            if info is not None:
+                when = info.created_at.strftime("%Y-%m-%d %H:%M")
+                n = str(info.n_training_labels)
+                val = {**val, **{k[4:]: v for k, v in info.metrics.items() if k.startswith("val_")}}
+            else:
+                when, n = ranking.source, str(m.get("n_states", "?"))
+            top1 = val.get("top1")
+            auc = val.get("value_auc")
+            row = (
+                f"| {ranking.version} | {when} | {n} | "
+                f"{'-' if top1 is None else f'{top1:.3f}'} | "
+                f"{'-' if auc is None else f'{auc:.3f}'} |"
+            )
+            rows.append((ranking.label, ranking.version, row))
+        return rows
+
+    def use_model(self, version: str | None) -> None:
+        """Rank every tab's next state with ``version`` (None: nearest neighbour)."""
+        self.resources.use(version)
+        for tab in self.tabs():
+            tab.refresh_models()
+
+    # ------------------------------------------------------------------ retraining
+    def retrain_state(self) -> tuple[bool, str, float]:
+        """(running, stage text, fraction done) for the panels."""
+        return self.retrain_job.running, self._retrain_text, self._retrain_fraction
+
+    def start_retrain(self) -> bool:
+        """Start a retrain on every label in the store; False when one is running."""
+        started = self.retrain_job.start(self._on_retrain_report)
+        if started:
+            self._retrain_text, self._retrain_fraction = "starting the training process", 0.02
+            self._broadcast_retrain()
+        return started
+
+    def _on_retrain_report(self, report: RetrainReport) -> None:
+        self._retrain_text, self._retrain_fraction = report.text, report.fraction
+        if report.kind == "done" and report.version is not None:
+            try:
+                model = qmodel_from_store(self.store, report.version)
+                self.resources.add_model(model, "store")
+                self.resources.use(report.version)
+            except Exception as exc:
+                report = RetrainReport("error", f"cannot load the new model: {exc}")
+                self._retrain_text = report.text
+        metrics = report.metrics
+        if report.kind == "done":
+            top1 = metrics.get("val_top1")
+            summary = (
+                f"{metrics.get('n_states')} states; validation top-1 "
+                f"{'n/a' if top1 is None else f'{top1:.3f}'}; next states are ranked by it"
+            )
+            self._retrain_text = f"model {report.version}: {summary}"
+        elif report.kind == "error":
+            self._retrain_text = f"retrain failed (the old model stays): {report.text}"
+        for tab in self.tabs():
+            tab.show_retrain()
+            if report.kind in ("done", "error"):
+                tab.refresh_models()
+                tab.notify(
+                    "retrain finished" if report.kind == "done" else "retrain failed",
+                    self._retrain_text,
+                    "green" if report.kind == "done" else "red",
+                )
+
+    def _broadcast_retrain(self) -> None:
+        for tab in self.tabs():
+            tab.show_retrain()
+
+    def stop(self) -> None:
+        """Stop serving: close every tab (no half label), stop a retrain, stop viser."""
+        for tab in self.tabs():
+            tab.close()
+        self.retrain_job.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+
+def load_models(
+    app_resources: AppResources, store: Store, model_arg: str | None, default_model: Path
+) -> str:
+    """Load the models the app can rank with and pick the current one; returns a description.
+
+    ``model_arg`` is a model file or a stored version; without it the newest stored model is used,
+    else the shipped default model, else nearest-neighbour ranking.
+    """
+    from knotlab.core.errors import InvalidInputError
+    from knotlab.core.selection.qmodel import QModel
+
+    notes = []
+    stored_versions = [m.version for m in store.list_models()]
+    for version in stored_versions:
+        try:
+            app_resources.add_model(qmodel_from_store(store, version), "store")
+        except Exception as exc:  # a model of another library stays in the store, unused
+            notes.append(f"stored model {version} skipped: {exc}")
+    if default_model.exists():
+        try:
+            app_resources.add_model(QModel.load(default_model), str(default_model))
+        except Exception as exc:
+            notes.append(f"{default_model} skipped: {exc}")
+    if model_arg is not None:
+        path = Path(model_arg)
+        if path.exists():
+            chosen = app_resources.add_model(QModel.load(path), str(path))
+        elif model_arg in {r.version for r in app_resources.models()}:
+            chosen = app_resources.use(model_arg)
+        else:
+            raise InvalidInputError(
+                f"--model {model_arg!r} is neither a model file nor a stored model version "
+                f"(stored: {', '.join(stored_versions) or 'none'})"
+            )
+        app_resources.use(chosen.version)
+    else:
+        loaded = app_resources.models()
+        newest_stored = [r for r in loaded if r.source == "store"]
+        pick = newest_stored[-1] if newest_stored else (loaded[-1] if loaded else None)
+        app_resources.use(None if pick is None else pick.version)
+    for note in notes:
+        log.warning(note)
+    return app_resources.current.label

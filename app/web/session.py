@@ -1,0 +1,453 @@
+"""One expert's labelling session (one browser tab): plain Python, no viser calls.
+
+The protocol is the original system's (lfd_facts section 11) in a browser: the tab holds a
+claimed training start; its state is ranked (the greedy policy's own ranking function); the
+expert selects a candidate and *tries* it in simulation, then accepts it (Y: the label is stored
+in one transaction with the ranking shown, the model version and the rope after the step),
+rejects it (N: state restored, candidate greyed out), marks the result a dead end (F: stored,
+state restored) or abandons the rope (R). U undoes the last accepted label. A knot or the step
+limit ends the episode and the next start is claimed.
+
+Thread safety: viser runs callbacks on a thread pool, so every public method takes the session's
+lock; ``try_selected`` holds it only to start and to finish, and refuses a second try meanwhile.
+Shape suffixes: n = cloud points, k = rope nodes, g = grippers, t = waypoints.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from knotlab.app.web.resources import AppResources, RankingModel
+from knotlab.core.experiments.episode import MAX_STEPS
+from knotlab.core.registration import ScanResult
+from knotlab.core.registration.planner import ActionOutcome, apply_demo
+from knotlab.core.selection.labels import DeadEndState, LabelledStep
+from knotlab.core.selection.ranking import RankedDemo, rank_demos
+from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
+from knotlab.core.world.sim import RopeWorld, SimSnapshot
+from knotlab.labeling_db.records import EpisodeInfo, StateProvenance
+from knotlab.labeling_db.store import Store
+
+FRAME_DT = 1.0 / 30.0  # s of simulated time between animation frames
+
+
+class Phase(StrEnum):
+    """Where a session is in the labelling protocol."""
+
+    CHOOSING = "choosing"  # candidates shown, pick one and try it
+    TRYING = "trying"  # the simulator is executing the selected candidate
+    JUDGING = "judging"  # the result is shown: accept, reject or dead end
+    NO_STARTS = "no_starts"  # every training start is labelled or claimed
+    CLOSED = "closed"
+
+
+class SessionError(Exception):
+    """An action that the session's phase does not allow (shown to the expert, not a crash)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """A ranked demo with its gripper trajectory warped onto the current scene, for drawing."""
+
+    ranked: RankedDemo
+    demo_step: int  # which step of its own demonstration the demo segment was
+    positions_gt3: np.ndarray  # warped through the scan's f (the executed one is exact)
+    closed_gt: np.ndarray
+
+    @property
+    def grasp_points(self) -> list[np.ndarray]:
+        """Where a gripper closes (one point per close), both grippers."""
+        return _switch_points(self.positions_gt3, self.closed_gt, closing=True)
+
+    @property
+    def release_points(self) -> list[np.ndarray]:
+        """Where a gripper opens after holding."""
+        return _switch_points(self.positions_gt3, self.closed_gt, closing=False)
+
+
+def _switch_points(pos_gt3: np.ndarray, closed_gt: np.ndarray, *, closing: bool) -> list:
+    out = []
+    for g in range(2):
+        flags = closed_gt[g].astype(int)
+        change = np.flatnonzero(np.diff(np.concatenate([[0], flags])) == (1 if closing else -1))
+        out += [pos_gt3[g, t] for t in change]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class TryResult:
+    """What trying a candidate did: the executed trajectory, frames and outcome."""
+
+    rank: int
+    demo_key: str
+    outcome: ActionOutcome
+    frames: ExecutionFrames | None
+    word: str  # progressed | knot | misgrasp | exploded | registration
+    cloud_after_n3: np.ndarray | None
+    wall_s: float
+
+    @property
+    def acceptable(self) -> bool:
+        """Only an execution that ran may be accepted (a misgrasp or blow-up can be rejected)."""
+        return self.word in ("progressed", "knot")
+
+
+@dataclass
+class SessionView:
+    """Everything the GUI and scene draw for a session (a consistent snapshot)."""
+
+    phase: Phase
+    labeller: str
+    task_id: str | None
+    step_index: int
+    max_steps: int
+    rope_nodes_k3: np.ndarray | None
+    cloud_n3: np.ndarray | None
+    candidates: list[Candidate]
+    selected: int | None  # rank
+    rejected: frozenset[int]  # ranks greyed out
+    model: str
+    last_try: TryResult | None
+    message: str = ""
+    rank_s: float = 0.0
+    history: list[str] = field(default_factory=list)
+
+
+class LabelSession:
+    """One labeller's tab: claims a start, ranks states, runs tries, stores judgements."""
+
+    def __init__(
+        self,
+        store: Store,
+        resources: AppResources,
+        labeller: str,
+        *,
+        world: RopeWorld | None = None,
+        max_steps: int = MAX_STEPS,
+    ) -> None:
+        if not labeller.strip():
+            raise SessionError("the labeller's name must not be empty")
+        self.store = store
+        self.res = resources
+        self.labeller = labeller.strip()
+        self.max_steps = max_steps
+        self.world = world if world is not None else RopeWorld()
+        self._own_world = world is None
+        self._lock = threading.RLock()
+        self.phase = Phase.CHOOSING
+        self.episode: EpisodeInfo | None = None
+        self.task_id: str | None = None
+        self.step_index = 0
+        self.snapshot: SimSnapshot | None = None
+        self.nodes_k3: np.ndarray | None = None  # the rope being labelled (before any try)
+        self.cloud_n3: np.ndarray | None = None
+        self.scan: ScanResult | None = None
+        self.ranking: RankingModel = resources.current
+        self.candidates: list[Candidate] = []
+        self.selected: int | None = None
+        self.rejected: set[int] = set()
+        self.last_try: TryResult | None = None
+        self.message = ""
+        self.rank_s = 0.0
+        self.history: list[str] = []
+        store.add_labeller(self.labeller, "human")
+
+    # ------------------------------------------------------------------ views
+    def view(self) -> SessionView:
+        """A snapshot of what to draw."""
+        with self._lock:
+            return SessionView(
+                phase=self.phase,
+                labeller=self.labeller,
+                task_id=self.task_id,
+                step_index=self.step_index,
+                max_steps=self.max_steps,
+                rope_nodes_k3=self.nodes_k3,
+                cloud_n3=self.cloud_n3,
+                candidates=list(self.candidates),
+                selected=self.selected,
+                rejected=frozenset(self.rejected),
+                model=self.ranking.label,
+                last_try=self.last_try,
+                message=self.message,
+                rank_s=self.rank_s,
+                history=list(self.history),
+            )
+
+    def candidate(self, rank: int) -> Candidate:
+        """The candidate shown at ``rank`` (1-based)."""
+        for c in self.candidates:
+            if c.ranked.rank == rank:
+                return c
+        raise SessionError(f"no candidate ranked {rank} (ranks 1-{len(self.candidates)} shown)")
+
+    # ------------------------------------------------------------------ episodes
+    def start(self) -> SessionView:
+        """Resume this labeller's unfinished episode, else claim the next unlabelled start."""
+        with self._lock:
+            opened = self.store.open_episode(self.labeller)
+            if opened is not None:
+                info, nodes = opened
+                self._enter_episode(info, nodes)
+                self.message = f"resumed your unfinished episode at step {info.n_labels + 1}"
+                return self.view()
+            return self._claim_next()
+
+    def _claim_next(self) -> SessionView:
+        info = self.store.start_episode(
+            self.labeller, library_hash=self.res.library_hash, source="human"
+        )
+        if info is None:
+            self.phase = Phase.NO_STARTS
+            self.episode, self.snapshot, self.candidates = None, None, []
+            self.nodes_k3, self.cloud_n3 = None, None
+            self.message = "every training start is labelled or being labelled"
+            return self.view()
+        self._enter_episode(info, None)
+        return self.view()
+
+    def _enter_episode(self, info: EpisodeInfo, resume_nodes_k3: np.ndarray | None) -> None:
+        self.episode = info
+        state = self.store.get_state(info.start_state_id) if info.start_state_id else None
+        self.task_id = None if state is None else state.provenance.task_id
+        nodes = resume_nodes_k3
+        if nodes is None:
+            if state is None or state.rope_nodes_k3 is None:
+                raise SessionError(f"episode {info.episode_id}: its start state has no rope")
+            nodes = state.rope_nodes_k3
+        self.world.reset(np.asarray(nodes, dtype=float))
+        self.step_index = info.n_labels
+        self.history = []
+        self._show_state()
+
+    def _show_state(self) -> None:
+        """Observe, scan and rank the world's current state (the greedy policy's ranking)."""
+        t0 = time.perf_counter()
+        self.ranking = self.res.current
+        self.snapshot = self.world.snapshot()
+        self.nodes_k3 = self.world.rope_nodes()
+        featurizer = self.ranking.featurizer
+        self.cloud_n3 = featurizer.observe(self.world)
+        if self.ranking.model is not None:
+            phi, scan = featurizer.features(self.cloud_n3)
+        else:
+            phi, scan = None, featurizer.scan(self.cloud_n3)
+        self.scan = scan
+        ranked = rank_demos(scan, phi, self.ranking.model, self.res.library.keys, self.res.top_k)
+        self.candidates = [self._candidate(r, scan) for r in ranked]
+        self.selected = self.candidates[0].ranked.rank if self.candidates else None
+        self.rejected = set()
+        self.last_try = None
+        self.phase = Phase.CHOOSING
+        self.rank_s = time.perf_counter() - t0
+        if not self.candidates:
+            self.message = "no demo registers onto this rope: press R for another start"
+
+    def _candidate(self, ranked: RankedDemo, scan: ScanResult) -> Candidate:
+        seg = self.res.library[ranked.demo_index]
+        traj = seg.trajectory
+        f = scan.f(ranked.demo_index)
+        pos = f.evaluate(traj.positions_gt3.reshape(-1, 3)).reshape(traj.positions_gt3.shape)
+        return Candidate(ranked, int(seg.step_index), pos, np.asarray(traj.closed_gt, bool))
+
+    def warped_demo_cloud(self, rank: int) -> np.ndarray:
+        """The candidate's demo cloud pushed onto the scene by its registration f."""
+        with self._lock:
+            cand = self.candidate(rank)
+            assert self.scan is not None
+            seg = self.res.library[cand.ranked.demo_index]
+            return self.scan.f(cand.ranked.demo_index).evaluate(seg.pre_cloud_n3)
+
+    # ------------------------------------------------------------------ selection
+    def select(self, rank: int) -> SessionView:
+        """Select the candidate at ``rank`` (the 3D pick and the list both call this)."""
+        with self._lock:
+            if self.phase is not Phase.CHOOSING:
+                raise SessionError(f"cannot select while {self.phase.value}")
+            self.candidate(rank)
+            self.selected = rank
+            self.message = ""
+            return self.view()
+
+    # ------------------------------------------------------------------ try and judge
+    def try_selected(self, recorder: FrameRecorder | None = None) -> TryResult:
+        """Simulate the selected candidate from the current state; the world keeps the result.
+
+        ``recorder`` receives the execution's frames as they are simulated (for animation).
+        """
+        with self._lock:
+            if self.phase is not Phase.CHOOSING:
+                raise SessionError(f"cannot try while {self.phase.value}")
+            if self.selected is None:
+                raise SessionError("select a candidate first")
+            if self.selected in self.rejected:
+                raise SessionError(f"candidate {self.selected} was rejected; select another")
+            cand = self.candidate(self.selected)
+            self.phase = Phase.TRYING
+            snapshot, cloud = self.snapshot, self.cloud_n3
+        assert snapshot is not None and cloud is not None
+        t0 = time.perf_counter()
+        try:
+            self.world.restore(snapshot)
+            outcome = apply_demo(
+                self.world,
+                self.res.transferer,
+                cloud,
+                cand.ranked.demo_index,
+                frames=recorder if recorder is not None else FrameRecorder(FRAME_DT),
+            )
+            frames = outcome.execution.frames if outcome.execution is not None else None
+            word = "knot" if outcome.knot else (outcome.failure_kind or "progressed")
+            word = str(getattr(word, "value", word))
+            after = None if outcome.exploded else self.ranking.featurizer.observe(self.world)
+        except Exception:
+            with self._lock:
+                self.world.restore(snapshot)
+                self.phase = Phase.CHOOSING
+            raise
+        result = TryResult(
+            cand.ranked.rank,
+            cand.ranked.demo_key,
+            outcome,
+            frames,
+            word,
+            after,
+            time.perf_counter() - t0,
+        )
+        with self._lock:
+            if self.phase is not Phase.TRYING:  # the tab closed meanwhile: nothing to judge
+                if self._own_world:
+                    self.world.close()
+                return result
+            self.last_try = result
+            self.phase = Phase.JUDGING
+            self.message = _try_message(result)
+        return result
+
+    def accept(self) -> SessionView:
+        """Y: store the label (state, choice, ranking shown, model, rope after) atomically."""
+        with self._lock:
+            result = self._judged()
+            if not result.acceptable:
+                raise SessionError(f"a {result.word} cannot be accepted: reject it (N) or F")
+            assert self.episode is not None and self.cloud_n3 is not None
+            step = LabelledStep(
+                step_index=self.step_index,
+                cloud_n3=self.cloud_n3,
+                chosen_demo=result.demo_key,
+                outcome="knot" if result.word == "knot" else "progressed",
+                rope_nodes_k3=self.nodes_k3,
+                candidates=tuple(c.ranked.demo_key for c in self.candidates),
+                candidate_scores_c=np.array([c.ranked.score for c in self.candidates]),
+                model_version=self.ranking.version,
+            )
+            self.store.add_label(
+                self.episode.episode_id,
+                step,
+                provenance=StateProvenance(self.task_id, self.step_index, None),
+                next_nodes_k3=result.outcome.nodes_after_k3,
+            )
+            self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({result.word})")
+            self.step_index += 1
+            if result.word == "knot" or self.step_index >= self.max_steps:
+                self.store.finish_episode(self.episode.episode_id, status="completed")
+                done = "knot tied" if result.word == "knot" else "step limit reached"
+                self._claim_next()
+                self.message = f"episode done ({done}); next start loaded"
+            else:
+                self._show_state()
+                self.message = f"accepted {result.demo_key}; step {self.step_index + 1}"
+            return self.view()
+
+    def reject(self) -> SessionView:
+        """N: restore the state, grey the candidate out, select the next one."""
+        with self._lock:
+            result = self._judged()
+            self._restore_after(result.rank)
+            self.message = f"rejected {result.demo_key}"
+            return self.view()
+
+    def dead_end(self) -> SessionView:
+        """F: store the state the try reached as a dead end, restore, select the next one."""
+        with self._lock:
+            result = self._judged()
+            assert self.episode is not None
+            if result.cloud_after_n3 is not None:
+                self.store.add_dead_end(
+                    self.episode.episode_id,
+                    DeadEndState(result.cloud_after_n3, result.outcome.nodes_after_k3),
+                    provenance=StateProvenance(self.task_id, self.step_index, None),
+                )
+            self._restore_after(result.rank)
+            self.message = f"stored a dead end after {result.demo_key}"
+            return self.view()
+
+    def _judged(self) -> TryResult:
+        if self.phase is not Phase.JUDGING or self.last_try is None:
+            raise SessionError("try a candidate first (Enter)")
+        return self.last_try
+
+    def _restore_after(self, rank: int) -> None:
+        assert self.snapshot is not None
+        self.world.restore(self.snapshot)
+        self.rejected.add(rank)
+        self.last_try = None
+        self.phase = Phase.CHOOSING
+        left = [c.ranked.rank for c in self.candidates if c.ranked.rank not in self.rejected]
+        self.selected = left[0] if left else None
+        if not left:
+            self.message = "every candidate was rejected: press R for a new start"
+
+    def resample(self) -> SessionView:
+        """R: abandon this rope's episode (its unsaved steps are dropped) and claim a new start."""
+        with self._lock:
+            if self.phase is Phase.TRYING:
+                raise SessionError("wait for the try to finish")
+            if self.episode is not None:
+                self.store.finish_episode(self.episode.episode_id, status="abandoned")
+            self._claim_next()
+            return self.view()
+
+    def undo(self) -> SessionView:
+        """U: delete the last accepted label and go back to the state it was made in."""
+        with self._lock:
+            if self.phase is Phase.TRYING:
+                raise SessionError("wait for the try to finish")
+            undone = self.store.undo_last_label(self.labeller)
+            if undone is None:
+                raise SessionError("nothing to undo")
+            if self.episode is not None and self.episode.episode_id != undone.episode_id:
+                self._release_if_unlabelled()
+            opened = self.store.open_episode(self.labeller)
+            assert opened is not None, "undo reopens the label's episode"
+            self._enter_episode(*opened)
+            self.message = f"undid step {undone.step_index + 1} ({undone.chosen_demo})"
+            return self.view()
+
+    def _release_if_unlabelled(self) -> None:
+        """Abandon the current episode when it holds no label, so its start can be claimed."""
+        if self.episode is not None and self.store.episode(self.episode.episode_id).n_labels == 0:
+            self.store.finish_episode(self.episode.episode_id, status="abandoned")
+
+    def close(self) -> None:
+        """The tab went away: drop any try; release the start if nothing was accepted on it."""
+        with self._lock:
+            was = self.phase
+            self.phase = Phase.CLOSED
+            if was is not Phase.NO_STARTS:
+                self._release_if_unlabelled()
+            if self._own_world and was is not Phase.TRYING:
+                self.world.close()
+
+
+def _try_message(result: TryResult) -> str:
+    if result.word == "knot":
+        return f"{result.demo_key} tied the knot: Y to accept"
+    if result.word == "progressed":
+        return f"{result.demo_key} executed: Y accept, N reject, F dead end"
+    return f"{result.demo_key}: {result.word}; N to reject or F to mark a dead end"

@@ -1,0 +1,238 @@
+"""One browser tab: wires its session (logic), scene drawer and panels (drawing) together.
+
+Every GUI event lands here on one of viser's pool threads; the session serialises them. An
+action the protocol does not allow right now becomes a notification, never a crash.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Literal
+
+import viser
+
+from knotlab.app.web.panels import Actions, LabelPanels
+from knotlab.app.web.scene import SceneDrawer
+from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
+from knotlab.core.world.frames import FrameRecorder
+
+if TYPE_CHECKING:
+    from knotlab.app.web.server import LabelApp
+
+log = logging.getLogger(__name__)
+NotifyColour = Literal["blue", "green", "yellow", "red"]
+NAME_KEY = "knotlab.labeller"  # browser local storage key of the labeller's name
+
+
+class LabelTab:
+    """The controller of one connected client."""
+
+    def __init__(self, app: LabelApp, client: viser.ClientHandle) -> None:
+        self.app = app
+        self.client = client
+        self.session: LabelSession | None = None
+        self.closed = False
+        self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
+        self.ready = threading.Event()  # a first state is drawn
+        self.drawer = SceneDrawer(client, on_pick=self.select)
+        self.panels = LabelPanels(
+            client,
+            Actions(
+                select=self.select,
+                try_=self.try_selected,
+                accept=lambda: self._act(lambda s: s.accept()),
+                reject=lambda: self._act(lambda s: s.reject()),
+                dead_end=lambda: self._act(lambda s: s.dead_end()),
+                resample=lambda: self._act(lambda s: s.resample(), look=True),
+                undo=lambda: self._act(lambda s: s.undo(), look=True),
+                retrain=self.retrain,
+                use_model=self.use_model,
+                toggle_warped=lambda _on: self._redraw_warped(),
+            ),
+        )
+        self.refresh_models()
+        self.show_retrain()
+
+    # ------------------------------------------------------------------ start
+    def open(self) -> None:
+        """Ask for the labeller's name (remembered by the browser) and start labelling."""
+        name = None
+        try:
+            name = self.client.local_storage.get_item(NAME_KEY, timeout=3.0)
+        except (RuntimeError, TimeoutError) as exc:
+            log.info(
+                "client %s: no local storage (%s); asking the name", self.client.client_id, exc
+            )
+        if name and name.strip():
+            self.begin(name)
+        else:
+            self.panels.ask_name(self.begin)
+
+    def begin(self, name: str) -> None:
+        """Start (or resume) this labeller's session."""
+        try:
+            self.client.local_storage.set_item(NAME_KEY, name.strip())
+            session = LabelSession(self.app.store, self.app.resources, name)
+            view = session.start()
+        except Exception as exc:
+            self._notify("cannot start labelling", str(exc), "red")
+            log.exception("client %s: cannot start", self.client.client_id)
+            return
+        if self.closed:
+            session.close()
+            return
+        self.session = session
+        self._draw(look=True)
+        self.ready.set()
+        log.info("client %s: %s labels %s", self.client.client_id, name, view.task_id)
+
+    # ------------------------------------------------------------------ actions
+    def select(self, rank: int) -> None:
+        """Select a candidate by rank (3D click, list button or hotkey)."""
+        self._act(lambda s: s.select(rank), candidates_only=True)
+
+    def try_selected(self) -> None:
+        """Simulate the selected candidate while its animation plays."""
+        session = self.session
+        if session is None:
+            return
+        view = session.view()
+        if view.phase is not Phase.CHOOSING or view.selected is None:
+            self._notify("nothing to try", "select a candidate first", "yellow")
+            return
+        recorder = FrameRecorder(FRAME_DT)
+        t0 = time.perf_counter()
+        self.drawer.show_warped(None, None)
+        self.panels.show(_trying(view))
+        cand = session.candidate(view.selected)
+        active = (bool(cand.closed_gt[0].any()), bool(cand.closed_gt[1].any()))
+        self.drawer.animate(recorder, view.selected, active)
+        try:
+            session.try_selected(recorder)
+        except SessionError as exc:
+            self.drawer.stop_animation()
+            self._notify("cannot try", str(exc), "yellow")
+            return
+        except Exception as exc:
+            self.drawer.stop_animation()
+            self._notify("the simulation failed", f"{type(exc).__name__}: {exc}", "red")
+            log.exception("try failed")
+            self._draw()
+            return
+        first = self.drawer.first_frame_at
+        if first is not None:
+            self.timings["try_to_first_frame_s"] = first - t0
+        self.timings["try_s"] = time.perf_counter() - t0
+        self.panels.show(session.view())
+
+    def _act(
+        self,
+        action: Callable[[LabelSession], object],
+        *,
+        look: bool = False,
+        candidates_only: bool = False,
+    ) -> None:
+        session = self.session
+        if session is None:
+            return
+        t0 = time.perf_counter()
+        try:
+            action(session)
+        except SessionError as exc:
+            self._notify("not now", str(exc), "yellow")
+            return
+        except Exception as exc:
+            self._notify("error", f"{type(exc).__name__}: {exc}", "red")
+            log.exception("action failed")
+            return
+        self.drawer.stop_animation()
+        if candidates_only:
+            view = session.view()
+            with self.client.atomic():
+                self.drawer.draw_candidates(view)
+                self.panels.show(view)
+            self._redraw_warped()
+        else:
+            self._draw(look=look)
+        self.timings["action_to_drawn_s"] = time.perf_counter() - t0
+
+    def _draw(self, look: bool = False) -> None:
+        session = self.session
+        if session is None:
+            return
+        view = session.view()
+        self.drawer.draw(view, look=look)
+        self.panels.show(view)
+        self._redraw_warped()
+        self._show_progress()
+        self.client.flush()
+
+    def _redraw_warped(self) -> None:
+        session = self.session
+        if session is None:
+            return
+        view = session.view()
+        on = bool(self.panels.show_warped.value)
+        if on and view.selected is not None and view.phase is Phase.CHOOSING:
+            self.drawer.show_warped(view.selected, session.warped_demo_cloud(view.selected))
+        else:
+            self.drawer.show_warped(None, None)
+
+    def _show_progress(self) -> None:
+        session = self.session
+        if session is None:
+            return
+        progress = self.app.store.progress(session.labeller)
+        today = datetime.now(UTC).date()
+        n_today = sum(
+            1
+            for lab in self.app.store.labels(labeller=session.labeller)
+            if lab.labelled_at.astimezone(UTC).date() == today
+        )
+        view = session.view()
+        self.panels.show_progress(n_today, progress.labels, progress.start_states_remaining, view)
+
+    # ------------------------------------------------------------------ models
+    def retrain(self) -> None:
+        """Start a retrain (refused with a message while one runs)."""
+        if not self.app.start_retrain():
+            self._notify("a retrain is already running", "wait for it to finish", "yellow")
+
+    def use_model(self, version: str | None) -> None:
+        """Rank this and every tab's next states with model ``version``."""
+        self.app.use_model(version)
+
+    def refresh_models(self) -> None:
+        """Redraw the model list and dropdown."""
+        self.panels.show_models(self.app.model_rows(), self.app.resources.current.version)
+
+    def show_retrain(self) -> None:
+        """Redraw the retrain progress."""
+        self.panels.show_retrain(*self.app.retrain_state())
+
+    def _notify(self, title: str, body: str, color: NotifyColour) -> None:
+        try:
+            self.client.add_notification(title, body, auto_close_seconds=6.0, color=color)
+        except Exception:  # the tab may be gone
+            log.debug("notification to a closed client dropped", exc_info=True)
+
+    def notify(self, title: str, body: str, color: NotifyColour = "blue") -> None:
+        """Show a notification in this tab."""
+        self._notify(title, body, color)
+
+    def close(self) -> None:
+        """The browser tab went away: no half label, release an untouched start."""
+        self.closed = True
+        self.drawer.stop_animation()
+        if self.session is not None:
+            self.session.close()
+
+
+def _trying(view):
+    view.phase = Phase.TRYING
+    view.message = "simulating..."
+    return view
