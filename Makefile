@@ -24,7 +24,7 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/activate
 	touch $@ $(VENV)/.installed-run
 
 run: $(VENV)/.installed-run
-	$(BIN)/knotlab tie --out knot.png
+	$(BIN)/knotlab app
 
 system-deps:
 	bash scripts/install_system_deps.sh

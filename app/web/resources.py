@@ -15,6 +15,7 @@ import numpy as np
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import TaskSet
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.jsonsafe import json_safe
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
@@ -69,7 +70,7 @@ def save_qmodel_to_store(
         hyperparameters=meta["hyperparameters"],
         feature_spec=meta["feature_spec"],
         params={"bias": meta["bias"], "format_version": meta["version"]},
-        metrics=meta["metrics"],
+        metrics=json_safe(meta["metrics"]),  # a metric with no data is NaN: strict JSON
         library_hash=library_hash,
         trained_on=trained_on,
     )

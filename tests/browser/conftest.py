@@ -1,0 +1,209 @@
+"""Browser tests: the real app (viser server, SQLite file, simulator) driven by headless Chromium.
+
+Debian's Chromium through Playwright (never `playwright install`). Tests are marked ``browser``
+and skipped, not failed, when Chromium or Playwright is missing. One app per test module (the
+kernel warm-up and the 300 starts are paid once); every test opens its own browser context, so
+local storage (the labeller's name) and the viser client are fresh unless a test reuses one.
+Set ``KNOTLAB_SCREENSHOTS=DIR`` to keep the screenshots the tests take (the README's come from
+there).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--enable-unsafe-swiftshader",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Mark every test here `browser`; skip them when the browser stack is missing."""
+    try:
+        import playwright.sync_api  # noqa: F401
+
+        missing = None if shutil.which(CHROMIUM) or Path(CHROMIUM).exists() else CHROMIUM
+    except ImportError:
+        missing = "playwright"
+    here = Path(__file__).parent
+    for item in items:
+        if Path(item.fspath).is_relative_to(here):
+            item.add_marker(pytest.mark.browser)
+            item.add_marker(pytest.mark.xdist_group("browser"))  # one worker: shares the CPU
+            if missing:
+                item.add_marker(pytest.mark.skip(reason=f"{missing} not installed"))
+
+
+def wait_until(pred: Callable[[], object], timeout: float = 20.0, what: str = "condition"):
+    """Poll ``pred`` until it is truthy; its value. Fails the test after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = pred()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def app_args(db_url: str, **over) -> argparse.Namespace:
+    """The `knotlab app` arguments of a test server (any free port, shipped files)."""
+    args = dict(
+        db=db_url, library=None, level="main", model=None, host="127.0.0.1", port=0, top_k=5
+    )
+    args.update(over)
+    return argparse.Namespace(**args)
+
+
+def start_app(db_url: str, **over):
+    """A running LabelApp on a free loopback port, rendering light (software WebGL)."""
+    from knotlab.app.cmd_app import build_app
+
+    return build_app(app_args(db_url, **over), lite_rendering=True)
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """One headless Chromium for the session."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def db_url(tmp_path_factory) -> str:
+    """A fresh SQLite file per test module."""
+    return f"sqlite:///{tmp_path_factory.mktemp('appdb') / 'knotlab.db'}"
+
+
+@pytest.fixture(scope="module")
+def app(db_url):
+    """The app under test, stopped at the end of the module."""
+    a = start_app(db_url)
+    yield a
+    a.stop()
+
+
+@dataclass
+class Tab:
+    """A browser page connected to the app, and the server-side tab it became."""
+
+    page: object
+    context: object
+    server_tab: object
+    errors: list
+
+    @property
+    def session(self):
+        """The labelling session behind the page."""
+        return self.server_tab.session
+
+    def focus_canvas(self) -> None:
+        """Give the 3D canvas keyboard focus (viser's hotkeys need it), away from the scene."""
+        canvas = self.page.locator("canvas").nth(1)
+        box = canvas.bounding_box()
+        self.page.mouse.click(box["x"] + 8, box["y"] + box["height"] - 8)
+
+    def press(self, key: str) -> None:
+        """A hotkey, as a labeller presses it."""
+        self.focus_canvas()
+        self.page.keyboard.press(key)
+
+    def button(self, name: str):
+        """A GUI button by its label (exact text start)."""
+        return self.page.get_by_role("button", name=name)
+
+    def screenshot(self, name: str) -> Path | None:
+        """Save a screenshot when KNOTLAB_SCREENSHOTS names a folder."""
+        folder = os.environ.get("KNOTLAB_SCREENSHOTS")
+        if not folder:
+            return None
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        path = Path(folder) / f"{name}.png"
+        self.page.screenshot(path=str(path))
+        return path
+
+    def click_world(self, point_3: np.ndarray) -> None:
+        """Click where a world point appears on the canvas (camera from the browser)."""
+        cam = self.server_tab.client.camera
+        import viser.transforms as tf
+
+        world_from_cam = tf.SE3.from_rotation_and_translation(
+            tf.SO3(np.asarray(cam.wxyz)), np.asarray(cam.position)
+        )
+        p = world_from_cam.inverse() @ np.asarray(point_3, float)
+        assert p[2] > 0, "point is behind the camera"
+        xy = p[:2] / p[2] / np.tan(cam.fov / 2)
+        xy[0] /= cam.aspect
+        u, v = (1 + xy) / 2
+        box = self.page.locator("canvas").nth(1).bounding_box()
+        self.page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
+
+
+def open_tab(browser, app, name: str | None, *, context=None, timeout: float = 30.0) -> Tab:
+    """Open the app in a new page, give the labeller's name if asked, wait for a drawn state."""
+    ctx = context or browser.new_context(viewport={"width": 1280, "height": 760})
+    before = {t.client.client_id for t in app.tabs()}
+    page = ctx.new_page()
+    errors: list = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(app.url)
+    page.wait_for_function(
+        "() => !document.body.innerText.includes('Connecting...')", timeout=timeout * 1000
+    )
+    tab = wait_until(
+        lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
+        timeout,
+        "the server to see the new client",
+    )
+    if name is not None:
+        field = (
+            page.locator("label", has_text="Your name")
+            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+            .locator("input:not([type='hidden'])")
+        )
+        field.wait_for(timeout=timeout * 1000)
+        field.fill(name)
+        page.get_by_role("button", name="Start labelling").click()
+    wait_until(lambda: tab.ready.is_set(), timeout, "the first state to be drawn")
+    return Tab(page, ctx, tab, errors)
+
+
+@pytest.fixture
+def tabs(browser, app) -> Iterator[Callable[..., Tab]]:
+    """Factory of connected tabs; closes their contexts after the test, then checks JS errors."""
+    opened: list[Tab] = []
+
+    def make(name: str | None = None, **kw) -> Tab:
+        tab = open_tab(browser, app, name, **kw)
+        opened.append(tab)
+        return tab
+
+    yield make
+    errors = [e for t in opened for e in t.errors]
+    for t in opened:
+        with contextlib.suppress(Exception):  # a test may have closed it already
+            t.context.close()
+    assert not errors, f"page errors: {errors}"
