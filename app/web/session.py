@@ -270,6 +270,8 @@ class LabelSession:
             if self.phase is not Phase.CHOOSING:
                 raise SessionError(f"cannot select while {self.phase.value}")
             self.candidate(rank)
+            if rank in self.rejected:
+                raise SessionError(f"candidate {rank} was rejected for this state")
             self.selected = rank
             self.message = ""
             return self.view()
@@ -408,9 +410,14 @@ class LabelSession:
         with self._lock:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
-            if self.episode is not None:
-                self.store.finish_episode(self.episode.episode_id, status="abandoned")
+            old = self.episode
+            # Claim the next start while this one is still held, so R never hands back the
+            # rope just abandoned (unless it is the only one left).
             self._claim_next()
+            if old is not None:
+                self.store.finish_episode(old.episode_id, status="abandoned")
+                if self.phase is Phase.NO_STARTS:
+                    self._claim_next()
             return self.view()
 
     def undo(self) -> SessionView:

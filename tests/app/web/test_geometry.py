@@ -1,0 +1,37 @@
+"""The app's pure geometry: the rope tube is a closed surface; ray picking finds the polyline."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from knotlab.app.web.geometry import pick_polyline, ray_polyline_distance, tube_faces, tube_vertices
+
+
+def test_the_tube_is_watertight_with_the_rope_volume():
+    nodes = np.c_[np.linspace(0, 1, 41), 0.1 * np.sin(np.linspace(0, 6, 41)), np.full(41, 0.01)]
+    mesh = trimesh.Trimesh(tube_vertices(nodes, 0.01), tube_faces(41, 12), process=False)
+    assert mesh.is_watertight and mesh.volume > 0
+    length = np.linalg.norm(np.diff(nodes, axis=0), axis=1).sum()
+    # A 12-gon's area is 0.955 of the circle's.
+    assert abs(mesh.volume / (np.pi * 0.01**2 * length) - 0.955) < 0.03
+
+
+def test_ray_distance_to_a_segment():
+    line = np.array([[0.0, 0, 0], [1, 0, 0]])
+    down = np.array([0.0, 0, -1])
+    assert ray_polyline_distance([0.5, 0, 1], down, line) < 1e-12
+    assert abs(ray_polyline_distance([0.5, 0.2, 1], down, line) - 0.2) < 1e-12
+    assert abs(ray_polyline_distance([2, 0, 1], down, line) - 1.0) < 1e-12  # beyond the end
+    assert abs(ray_polyline_distance([0.5, 0, -1], down, line) - 1.0) < 1e-12  # behind the ray
+
+
+def test_pick_returns_the_closest_polyline_within_reach():
+    lines = {
+        1: [np.array([[0.0, 0, 0], [1, 0, 0]])],
+        2: [np.array([[0.0, 0.1, 0], [1, 0.1, 0]])],
+    }
+    down = np.array([0.0, 0, -1])
+    assert pick_polyline(np.array([0.5, 0.08, 1]), down, lines) == 2
+    assert pick_polyline(np.array([0.5, 0.01, 1]), down, lines) == 1
+    assert pick_polyline(np.array([0.5, 0.5, 1]), down, lines) is None

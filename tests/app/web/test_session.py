@@ -1,0 +1,174 @@
+"""The labelling session without a browser: the protocol, the store rows, the shared ranking.
+
+Real parts: the shipped library and training starts, the simulator and a SQLite file.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from knotlab.app import defaults
+from knotlab.app.web.resources import load_resources
+from knotlab.app.web.session import LabelSession, Phase, SessionError
+from knotlab.core.registration.planner import DemoTransferer
+from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy, StepContext
+from knotlab.core.selection.qmodel import QModel
+from knotlab.labeling_db.store import open_store
+
+
+@pytest.fixture(scope="module")
+def resources():
+    res = load_resources(defaults.LIBRARY_PATH, defaults.task_set_path("main", "train"), 5)
+    res.use(res.add_model(QModel.load(defaults.MODEL_PATH), "shipped").version)
+    return res
+
+
+@pytest.fixture
+def store(tmp_path, resources):
+    s = open_store(f"sqlite:///{tmp_path / 'k.db'}")
+    resources.register_starts(s, "main")
+    yield s
+    s.close()
+
+
+def _session(store, resources, name="ann", **kw) -> LabelSession:
+    s = LabelSession(store, resources, name, **kw)
+    s.start()
+    return s
+
+
+def _accept_something(s: LabelSession) -> str:
+    """Try candidates in rank order until one executes; accept it; its demo key."""
+    while True:
+        result = s.try_selected()
+        if result.acceptable:
+            s.accept()
+            return result.demo_key
+        s.reject()
+
+
+def test_the_ranking_shown_is_the_greedy_policys_and_nn_without_a_model(store, resources):
+    s = _session(store, resources)
+    view = s.view()
+    ctx = StepContext(
+        s.world,
+        view.cloud_n3,
+        s.scan,
+        resources.current.featurizer,
+        DemoTransferer(resources.library),
+        0,
+        5,
+    )
+    greedy = GreedyPolicy(resources.current.model).choose(ctx)
+    assert view.candidates[0].ranked.demo_index == greedy.action
+    order = np.argsort(-greedy.scores_a, kind="stable")[: len(view.candidates)]
+    assert [c.ranked.demo_index for c in view.candidates] == list(order)
+    s.close()
+    try:
+        resources.use(None)
+        nn = _session(store, resources, "bob")
+        ctx.scan, ctx.cloud_n3 = nn.scan, nn.view().cloud_n3
+        ctx.world = nn.world
+        assert (
+            nn.view().candidates[0].ranked.demo_index == NearestNeighbourPolicy().choose(ctx).action
+        )
+        assert nn.view().candidates[0].ranked.q is None
+        nn.close()
+    finally:
+        resources.use(resources.models()[0].version)
+
+
+def test_accept_stores_state_choice_ranking_model_and_resume_point(store, resources):
+    s = _session(store, resources)
+    shown = [c.ranked.demo_key for c in s.view().candidates]
+    chosen = _accept_something(s)
+    (label,) = store.labels(labeller="ann")
+    assert label.chosen_demo == chosen and label.step_index == 0
+    execution = store.training_executions(include_unfinished=True)[0]
+    step = execution.steps[0]
+    assert list(step.candidates) == shown and step.model_version == resources.current.version
+    episode, resume = store.open_episode("ann")
+    assert episode.n_labels == 1 and s.view().step_index == 1
+    assert np.allclose(resume, s.view().rope_nodes_k3, atol=1e-6)
+
+
+def test_reject_restores_the_state_exactly_and_selects_the_next(store, resources):
+    s = _session(store, resources)
+    before = s.world.rope_nodes().copy()
+    s.try_selected()
+    assert s.view().phase is Phase.JUDGING
+    s.reject()
+    view = s.view()
+    assert view.phase is Phase.CHOOSING and view.rejected == {1} and view.selected == 2
+    assert np.array_equal(s.world.rope_nodes(), before)
+    with pytest.raises(SessionError, match="rejected"):
+        s.select(1)
+
+
+def test_dead_end_is_stored_and_the_state_restored(store, resources):
+    s = _session(store, resources)
+    s.try_selected()
+    s.dead_end()
+    assert store.progress("ann").dead_ends == 1
+    assert s.view().phase is Phase.CHOOSING and 1 in s.view().rejected
+
+
+def test_actions_out_of_turn_are_refused(store, resources):
+    s = _session(store, resources)
+    for action in (s.accept, s.reject, s.dead_end):
+        with pytest.raises(SessionError, match="try a candidate first"):
+            action()
+    with pytest.raises(SessionError, match="no candidate ranked 9"):
+        s.select(9)
+    s.try_selected()
+    with pytest.raises(SessionError, match="cannot try while judging"):
+        s.try_selected()
+
+
+def test_undo_goes_back_to_the_state_of_the_undone_step(store, resources):
+    s = _session(store, resources)
+    start_nodes = s.view().rope_nodes_k3.copy()
+    task = s.view().task_id
+    _accept_something(s)
+    s.undo()
+    assert store.labels(labeller="ann") == []
+    view = s.view()
+    assert view.task_id == task and view.step_index == 0
+    assert np.allclose(view.rope_nodes_k3, start_nodes, atol=1e-6)
+    with pytest.raises(SessionError, match="nothing to undo"):
+        s.undo()
+
+
+def test_the_step_limit_ends_the_episode_and_claims_the_next_start(store, resources):
+    s = _session(store, resources, max_steps=1)
+    first = s.view().task_id
+    _accept_something(s)
+    assert s.view().task_id != first and s.view().step_index == 0
+    (done,) = [e for e in store.stored_executions() if e.status == "completed"]
+    assert len(done.execution.steps) == 1
+
+
+def test_resample_abandons_and_close_releases_an_untouched_start(store, resources):
+    s = _session(store, resources)
+    first = s.view().task_id
+    s.resample()
+    assert s.view().task_id != first
+    second = s.view().task_id
+    s.close()
+    other = _session(store, resources, "cat")
+    assert other.view().task_id in (first, second)  # both starts are free again
+    other.close()
+    assert store.progress("ann").episodes_abandoned == 2
+
+
+def test_two_sessions_claim_different_starts(store, resources):
+    a, b = _session(store, resources, "ann"), _session(store, resources, "bob")
+    assert a.view().task_id != b.view().task_id
+    a.close()
+    b.close()
+
+
+def test_an_empty_name_is_refused(store, resources):
+    with pytest.raises(SessionError, match="name"):
+        LabelSession(store, resources, "  ")
