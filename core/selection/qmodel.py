@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.atomic import atomic_open
 from knotlab.core.errors import CorruptFileError, InvalidInputError
 from knotlab.core.hashing import ContentHash
 from knotlab.core.selection.landmarks import Landmarks
@@ -91,9 +92,7 @@ class QModel:
             "metrics": self.metrics,
             "hash": self.content_hash(),
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
+        with atomic_open(path, "wb") as fh:  # a crash never leaves a half-written model
             np.savez(
                 fh,
                 weights_d=self.weights_d,
@@ -102,18 +101,19 @@ class QModel:
                 meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
                 **(self.landmarks.to_arrays() if self.landmarks is not None else {}),
             )
-        tmp.replace(path)  # atomic: a crash never leaves a half-written model
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> QModel:
         """Read and validate a model written by :meth:`save`."""
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"model file not found: {path}")
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder; expected a model file (.npz)")
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: np.array(data[k]) for k in data.files}
-        except FileNotFoundError:
-            raise
         except Exception as exc:
             raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
         missing = {"weights_d", "feature_mean_d", "feature_scale_d", "meta"} - set(arrays)
