@@ -117,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     try:
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # outputs are atomic: an interrupted command wrote nothing half-way
+        print(f"{command_name(args)}: interrupted", file=sys.stderr)
+        return 130
     except Exception as exc:
         if args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"):
             raise

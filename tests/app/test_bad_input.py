@@ -243,6 +243,19 @@ def test_a_failed_run_exits_1_in_one_line(
     assert line.startswith("knotlab model info: error: unexpected KeyError") and "--debug" in line
 
 
+def test_an_interrupted_command_says_so_in_one_line(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from knotlab.app import cmd_model
+
+    def interrupted(args) -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cmd_model, "run_info", interrupted)
+    assert cli.main(["model", "info", MODEL]) == 130
+    assert capsys.readouterr().err == "knotlab model info: interrupted\n"
+
+
 def test_version_is_the_installed_one(capsys: pytest.CaptureFixture[str]) -> None:
     from importlib.metadata import version
 
