@@ -25,12 +25,23 @@ def test_demos_info_summarises_a_library(tmp_path: Path, capsys) -> None:
     assert info["path"] == str(path)
 
 
-@pytest.mark.slow
-def test_demos_generate_writes_one_demo_and_no_temporary(tmp_path: Path, capsys) -> None:
-    out = tmp_path / "lib.npz"
-    argv = ["demos", "generate", "--starts", "1", "--workers", "1", "--no-progress"]
+def test_demos_generate_checks_out_first_then_saves_whole(tmp_path: Path, capsys, monkeypatch):
+    from knotlab.core.demos import generation
+
+    calls = []
+
+    def fake_generate(n_starts, settings, *, workers, progress):  # the expert takes minutes
+        calls.append((n_starts, settings.seed, workers, progress))
+        return generation.GenReport(mini_library(2), 3, 2, {"0": 1}, 0.1)
+
+    monkeypatch.setattr(generation, "generate_library", fake_generate)
+    argv = ["demos", "generate", "--starts", "2", "--seed", "5", "--workers", "1", "--no-progress"]
+    assert cli.main([*argv, "--out", str(tmp_path / "folder" / "lib")]) == 2  # no .npz: refused
+    assert calls == [] and not (tmp_path / "folder").exists()
+    out = tmp_path / "folder" / "lib.npz"
     assert cli.main([*argv, "--out", str(out)]) == 0
-    assert "3 segments from 1 start states" in capsys.readouterr().out
-    assert [p.name for p in tmp_path.iterdir()] == ["lib.npz"]
+    assert calls == [(2, 5, 1, False)]
+    assert "6 segments from 2 start states" in capsys.readouterr().out
+    assert [p.name for p in out.parent.iterdir()] == ["lib.npz"]  # no temporary left
     assert cli.main(["demos", "info", str(out), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["segments"] == 3
+    assert json.loads(capsys.readouterr().out)["hash"] == mini_library(2).content_hash()
