@@ -1,10 +1,18 @@
-"""`knotlab` entry point: one sub-command group per module in app/ (`cmd_*.py`)."""
+"""`knotlab` entry point: one sub-command group per module in app/ (`cmd_*.py`).
+
+Errors are reported here, once, for every command: one line ``knotlab <command>: error: ...`` on
+stderr, exit code 2 when the input was at fault (bad arguments, missing or corrupt files, bad
+database URLs) and 1 when a run on good input failed. ``--debug`` or ``KNOTLAB_DEBUG=1`` shows the
+traceback instead.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+from typing import NoReturn
 
 # Each module exposes `register(subparsers)` and sets `func` on its parsers.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -16,15 +24,64 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_label",
     "knotlab.app.cmd_train",
     "knotlab.app.cmd_bench",
+    "knotlab.app.cmd_model",
     "knotlab.app.cmd_app",
 )
+DEBUG_ENV = "KNOTLAB_DEBUG"
+# OS errors on a path the user named: the input is at fault, not the run.
+_BAD_PATH_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (the usage is one --help away)."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``<prog>: error: <message>`` and exit with code 2."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def version() -> str:
+    """The installed knotlab version (the package's own when not installed)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed_version
+
+    try:
+        return installed_version("knotlab")
+    except PackageNotFoundError:
+        from knotlab.app import __version__
+
+        return __version__
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: looked up only when asked (importlib.metadata costs start-up time)."""
+
+    def __init__(self, option_strings: list[str], dest: str, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        """Print ``knotlab VERSION`` on stdout and exit 0."""
+        print(f"knotlab {version()}")
+        parser.exit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree for every knotlab sub-command."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="knotlab",
         description="Learn which expert demonstration to transfer to a rope, and test it.",
+    )
+    parser.add_argument("--version", action=_VersionAction, help="print the version and exit")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help=f"show the traceback of an error instead of one line (also: {DEBUG_ENV}=1)",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
@@ -32,11 +89,44 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def command_name(args: argparse.Namespace) -> str:
+    """'knotlab demos info' for the parsed arguments of `knotlab demos info ...`."""
+    words = [args.command]
+    words += [v for k, v in vars(args).items() if k.endswith("_command") and isinstance(v, str)]
+    return " ".join(["knotlab", *words])
+
+
+def describe_error(exc: BaseException) -> tuple[str, int]:
+    """The one-line message and exit code an error ends a command with."""
+    from knotlab.core.errors import KnotlabError
+
+    if isinstance(exc, KnotlabError):
+        return str(exc), exc.exit_code
+    if isinstance(exc, OSError):
+        # "[Errno 2] No such file or directory: 'x'" -> "x: No such file or directory"
+        text = f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc)
+        return text, 2 if isinstance(exc, _BAD_PATH_ERRORS) else 1
+    return f"unexpected {type(exc).__name__}: {exc} (rerun with --debug for the traceback)", 1
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the knotlab command line; returns the process exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, a usage error: argparse already printed
+        return exc.code if isinstance(exc.code, int) else 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # outputs are atomic: an interrupted command wrote nothing half-way
+        print(f"{command_name(args)}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"):
+            raise
+        message, code = describe_error(exc)
+        print(f"{command_name(args)}: error: {message}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import add_db_argument, db_url
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -77,12 +77,7 @@ def _run(args: argparse.Namespace) -> int:
             "network can label with your database",
             file=sys.stderr,
         )
-    from knotlab.core.errors import KnotlabError
-
-    try:
-        app = build_app(args, lite_rendering=args.lite_rendering)
-    except (KnotlabError, FileNotFoundError, OSError) as exc:
-        return fail(exc)
+    app = build_app(args, lite_rendering=args.lite_rendering)  # bad input: one line at the edge
     if app.server.get_port() != args.port and args.port != 0:
         print(f"note: port {args.port} was busy; serving on {app.server.get_port()}")
     print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)

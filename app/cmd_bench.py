@@ -10,14 +10,16 @@ import sys
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.core.errors import KnotlabError
+from knotlab.app.options import (
+    SEED,
+    WORKERS,
+    add_no_progress_argument,
+    add_task_set_argument,
+    integer,
+    number,
+)
 
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
-
-
-def _fail(message: str) -> int:
-    print(f"knotlab bench: error: {message}", file=sys.stderr)
-    return 2
 
 
 def resolve_model_path(arg: str | None, out_dir: Path) -> Path | None:
@@ -41,10 +43,11 @@ def _json_safe(value):
 
 
 def _run(args: argparse.Namespace) -> int:
+    from knotlab.core.atomic import check_output_dir
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.errors import InvalidInputError
     from knotlab.core.experiments.bench import (
-        BenchMismatchError,
         format_table,
         needs_model,
         run_bench,
@@ -54,25 +57,16 @@ def _run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     policies = [p.strip() for p in args.policies.split(",") if p.strip()]
-    for flag, value in (("--tasks", args.tasks), ("--max-steps", args.max_steps)):
-        if value < 1:
-            return _fail(f"{flag} must be >= 1, got {value}")
-    if args.first is not None and args.first < 1:
-        return _fail(f"--first must be >= 1, got {args.first}")
-    try:
-        validate_policies(policies)
-    except KnotlabError as exc:
-        return _fail(str(exc))
-    out_dir = Path(args.out)
+    validate_policies(policies)
+    out_dir = check_output_dir(args.out)
     library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
     task_path = Path(args.task_set) if args.task_set else defaults.task_set_path(args.level, "test")
     try:
         library = DemoLibrary.load(library_path)
         task_set = TaskSet.load(task_path)
     except FileNotFoundError as exc:
-        return _fail(f"{exc} (make it with `knotlab demos` / `knotlab tasks`, or pass a path)")
-    except KnotlabError as exc:
-        return _fail(str(exc))
+        hint = "make it with `knotlab demos` / `knotlab tasks`, or pass a path"
+        raise FileNotFoundError(f"{exc} ({hint})") from exc
     model = None
     model_path: Path | None = None
     learned = [p for p in policies if needs_model(p)]
@@ -80,15 +74,12 @@ def _run(args: argparse.Namespace) -> int:
         model_path = resolve_model_path(args.model, out_dir)
         if model_path is None or not model_path.exists():
             where = model_path or f"{out_dir / 'model.npz'} or {defaults.MODEL_PATH}"
-            return _fail(
+            raise InvalidInputError(
                 f"policies {', '.join(learned)} need a trained model and there is none at "
                 f"{where}: run `knotlab train --out PATH` first (on the TRAIN labels), "
                 "then pass --model PATH"
             )
-        try:
-            model = QModel.load(model_path)
-        except KnotlabError as exc:
-            return _fail(str(exc))
+        model = QModel.load(model_path)
     arguments = {
         "policies": policies,
         "tasks": args.tasks,
@@ -106,28 +97,23 @@ def _run(args: argparse.Namespace) -> int:
         "argv": sys.argv,
     }
     n_tasks = min(args.tasks, len(task_set))
-    try:
-        result = run_bench(
-            out_dir,
-            library=library,
-            task_set=task_set,
-            policies=policies,
-            n_tasks=n_tasks,
-            model=model,
-            seed=args.seed,
-            noise=args.noise,
-            max_steps=args.max_steps,
-            first=args.first,
-            workers=args.workers,
-            engine=args.engine,
-            ray_address=args.ray_address,
-            progress=not args.no_progress,
-            arguments=arguments,
-        )
-    except BenchMismatchError as exc:
-        return _fail(str(exc))
-    except KnotlabError as exc:
-        return _fail(str(exc))
+    result = run_bench(
+        out_dir,
+        library=library,
+        task_set=task_set,
+        policies=policies,
+        n_tasks=n_tasks,
+        model=model,
+        seed=args.seed,
+        noise=args.noise,
+        max_steps=args.max_steps,
+        first=args.first,
+        workers=args.workers,
+        engine=args.engine,
+        ray_address=args.ray_address,
+        progress=not args.no_progress,
+        arguments=arguments,
+    )
     level = task_set.metadata.get("level", args.level)
     print(
         f"knotlab bench: {level} test, {n_tasks} tasks, {result.ran} episodes run, "
@@ -187,7 +173,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_POLICIES,
         help=f"comma-separated: nn, greedy, la<D>x<W>, oracle (default {DEFAULT_POLICIES})",
     )
-    p.add_argument("--tasks", type=int, default=500, help="first N test tasks (default 500)")
+    p.add_argument("--tasks", type=integer(1), default=500, help="first N test tasks (default 500)")
     p.add_argument("--level", choices=defaults.LEVELS, default="main")
     p.add_argument("--out", required=True, help="results directory (resumed if it exists)")
     p.add_argument(
@@ -198,31 +184,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
     )
+    add_task_set_argument(p, "test task-set file (default static/tasks_<level>_test.npz)")
     p.add_argument(
-        "--task-set",
-        default=None,
-        help="test task-set file (default static/tasks_<level>_test.npz)",
-    )
-    p.add_argument(
-        "--workers", type=int, default=None, help="worker processes/actors (default: cores)"
+        "--workers", type=WORKERS, default=None, help="worker processes/actors (default: cores)"
     )
     p.add_argument("--engine", choices=("local", "ray"), default="local")
     p.add_argument(
         "--ray-address", default=None, help="Ray cluster address (default: start a local Ray)"
     )
-    p.add_argument("--seed", type=int, default=0, help="observation-noise seed (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="observation-noise seed (default 0)")
     p.add_argument(
-        "--noise", type=float, default=0.0, help="observation noise sigma, metres (default 0)"
+        "--noise", type=number(0.0), default=0.0, help="observation noise sigma, metres (default 0)"
     )
     p.add_argument(
         "--first",
-        type=int,
+        type=integer(1),
         default=None,
         help="run the search policies (la*, oracle) on the first K tasks only (default: all)",
     )
     p.add_argument(
-        "--max-steps", type=int, default=5, help="steps per episode (default 5, the paper's)"
+        "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress_argument(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     p.set_defaults(func=_run)

@@ -5,18 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import add_db_argument, db_url
 
 
 def _init(args: argparse.Namespace) -> int:
-    from knotlab.labeling_db.errors import LabelingDbError
     from knotlab.labeling_db.store import upgrade_database
 
     url = db_url(args)
-    try:
-        before, after = upgrade_database(url, create=True)
-    except LabelingDbError as exc:
-        return fail(exc)
+    before, after = upgrade_database(url, create=True)
     if before.state == "empty":
         print(f"created the knotlab schema at revision {after.revision} in {after.url}")
     elif before.revision == after.revision:
@@ -27,14 +23,10 @@ def _init(args: argparse.Namespace) -> int:
 
 
 def _upgrade(args: argparse.Namespace) -> int:
-    from knotlab.labeling_db.errors import LabelingDbError
     from knotlab.labeling_db.store import upgrade_database
 
     url = db_url(args)
-    try:
-        before, after = upgrade_database(url, create=False)
-    except LabelingDbError as exc:
-        return fail(exc)
+    before, after = upgrade_database(url, create=False)
     if before.revision == after.revision:
         print(f"{after.url} is already at the newest schema revision {after.revision}")
     else:
@@ -43,16 +35,12 @@ def _upgrade(args: argparse.Namespace) -> int:
 
 
 def _stats(args: argparse.Namespace) -> int:
-    from knotlab.labeling_db.errors import LabelingDbError
     from knotlab.labeling_db.store import open_store, schema_status
 
     url = db_url(args)
-    try:
-        status = schema_status(url)
-        with open_store(url, create=False, auto_upgrade=False) as store:
-            stats = store.stats()
-    except LabelingDbError as exc:
-        return fail(exc)
+    status = schema_status(url)
+    with open_store(url, create=False, auto_upgrade=False) as store:
+        stats = store.stats()
     stats["schema_head"] = status.head
     if args.json:
         print(json.dumps(stats, sort_keys=True))

@@ -5,6 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
+from knotlab.app.options import (
+    SEED,
+    WORKERS,
+    add_no_progress_argument,
+    check_not_shipped,
+    integer,
+    number,
+)
 from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel
 
 
@@ -19,11 +27,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "processes and keep the first N demos that end in an overhand knot (3 segments each). "
         "The same seed gives a bit-identical file for any number of workers.",
     )
-    gen.add_argument("--starts", type=int, default=50, help="successful demos to keep (50)")
-    gen.add_argument("--seed", type=int, default=0, help="generation seed (0)")
+    gen.add_argument("--starts", type=integer(1), default=50, help="successful demos to keep (50)")
+    gen.add_argument("--seed", type=SEED, default=0, help="generation seed (0)")
     gen.add_argument("--out", required=True, help="library file to write (.npz)")
-    gen.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    gen.add_argument("--bend", type=float, default=0.03, help="start-rope bend amplitude, m")
+    gen.add_argument("--workers", type=WORKERS, default=None, help="processes (default: all cores)")
+    gen.add_argument(
+        "--bend", type=number(0.0), default=0.03, help="start-rope bend amplitude, m (0.03)"
+    )
     gen.add_argument(
         "--observation",
         choices=[m.value for m in ObservationModel],
@@ -31,7 +41,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="how the rope is perceived: centreline (state estimate, default), cloud (camera "
         "surface cloud), tracked (centreline estimated from the camera cloud)",
     )
-    gen.add_argument("--no-progress", action="store_true", help="no progress bar")
+    gen.add_argument(
+        "--force", action="store_true", help="allow --out to replace the library in static/"
+    )
+    add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a library file")
     info.add_argument("path", help="library file (.npz)")
@@ -41,7 +54,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate and save a library; print a one-line summary."""
+    from knotlab.core.atomic import check_output_file
     from knotlab.core.demos.generation import GenSettings, generate_library
+
+    check_output_file(args.out)  # before minutes of simulation, not after
+    check_not_shipped(args.out, force=args.force, kind="demo library")
 
     report = generate_library(
         args.starts,
@@ -81,7 +98,6 @@ def run_info(args: argparse.Namespace) -> int:
     per = ", ".join(f"step {k}: {v}" for k, v in s["segments_per_step"].items())
     print(f"  per step:      {per}")
     print(f"  observation:   {ObservationModel.of_library_metadata(meta).value}")
-    meta = s["metadata"]
     if "expert_success_rate" in meta:
         print(
             f"  generated:     seed {meta.get('seed')}, expert success "

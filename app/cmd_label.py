@@ -9,7 +9,14 @@ import time
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import (
+    WORKERS,
+    add_db_argument,
+    add_no_progress_argument,
+    add_task_set_argument,
+    db_url,
+    integer,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,15 +32,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--oracle", action="store_true", required=True, help="use the oracle expert")
     p.add_argument("--tasks", choices=("train",), default="train", help="which task split")
     p.add_argument("--level", choices=defaults.LEVELS, default="main", help="task level")
-    p.add_argument(
-        "--task-file", type=Path, help="task set file (default: the level's shipped set)"
-    )
+    add_task_set_argument(p, "train task-set file (default: the level's shipped set)")
     p.add_argument("--library", type=Path, default=defaults.LIBRARY_PATH, help="demo library file")
     add_db_argument(p)
-    p.add_argument("--limit", type=int, help="label only the first N tasks")
-    p.add_argument("--candidates", type=int, default=10, help="demos tried per state")
-    p.add_argument("--sim-budget", type=int, default=60, help="simulated actions per task")
-    p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
+    p.add_argument("--limit", type=integer(0), help="label only the first N tasks")
+    # at least 1: a budget of 0 would simulate nothing and record every task as unsolved
+    p.add_argument("--candidates", type=integer(1), default=10, help="demos tried per state")
+    p.add_argument("--sim-budget", type=integer(1), default=60, help="simulated actions per task")
+    p.add_argument("--workers", type=WORKERS, help="worker processes (default: all cores)")
+    add_no_progress_argument(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     p.set_defaults(func=run)
 
@@ -42,25 +49,18 @@ def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import TaskSet
-    from knotlab.core.errors import KnotlabError
+    from knotlab.core.errors import InvalidInputError
     from knotlab.core.experiments.labeller import OracleParams, oracle_label_tasks
     from knotlab.labeling_db.store import open_store
 
     args.db = db_url(args)
-    for flag, value in (("--candidates", args.candidates), ("--sim-budget", args.sim_budget)):
-        if value < 1:
-            return fail(f"{flag} must be >= 1, got {value} (nothing would be simulated)")
-    if args.limit is not None and args.limit < 0:
-        return fail(f"--limit must be >= 0, got {args.limit}")
-
-    task_path = args.task_file or defaults.task_set_path(args.level, args.tasks)
-    try:
-        tasks = TaskSet.load(task_path)
-        library = DemoLibrary.load(args.library)
-    except (OSError, KnotlabError) as exc:
-        return fail(exc)
+    task_path = (
+        Path(args.task_set) if args.task_set else defaults.task_set_path(args.level, "train")
+    )
+    tasks = TaskSet.load(task_path)
+    library = DemoLibrary.load(args.library)
     if tasks.split != "train":
-        return fail(
+        raise InvalidInputError(
             f"{task_path} is a {tasks.split!r} task set: labels train the model, so only "
             "training starts may be labelled (the test set must stay unseen)"
         )
@@ -77,7 +77,10 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         params = OracleParams(args.candidates, 5, args.sim_budget)
-        for result in oracle_label_tasks(args.library, todo, params=params, workers=args.workers):
+        results = oracle_label_tasks(
+            args.library, todo, params=params, workers=args.workers, progress=not args.no_progress
+        )
+        for result in results:
             store.add_execution(result.execution, if_exists="skip")
             solved += result.solved
             sims += result.simulations

@@ -4,44 +4,63 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
+from typing import Literal, cast
 
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import add_db_argument, db_url
+
+LabelFormat = Literal["jsonl", "csv"]
+FORMATS: tuple[LabelFormat, ...] = ("jsonl", "csv")
+SUFFIXES: dict[str, LabelFormat] = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
+
+
+def export_format(out: str | None, fmt: str | None) -> LabelFormat:
+    """The format to export: --format, else the --out extension; a mismatch is refused."""
+    from pathlib import Path
+
+    from knotlab.core.errors import OutputPathError
+
+    if out in (None, "-"):
+        return cast(LabelFormat, fmt or "jsonl")
+    suffix = Path(out).suffix.lower()
+    implied = SUFFIXES.get(suffix)
+    if implied is None:
+        raise OutputPathError(
+            f"--out {out}: expected a .jsonl or .csv file name (the format follows the extension)"
+        )
+    if fmt is not None and fmt != implied:
+        raise OutputPathError(
+            f"--out {out} says {implied} but --format is {fmt}; make them agree "
+            "(or drop --format: the extension decides)"
+        )
+    return implied
 
 
 def _export(args: argparse.Namespace) -> int:
-    from knotlab.labeling_db.errors import LabelingDbError
+    from knotlab.core.atomic import atomic_open, check_output_file
     from knotlab.labeling_db.interchange import export_labels
     from knotlab.labeling_db.store import open_store
 
-    url = db_url(args)
-    try:
-        with open_store(url, create=False, auto_upgrade=False) as store:
-            if args.out in (None, "-"):
-                n = export_labels(store, sys.stdout, args.format, source=args.source)
-            else:
-                out = Path(args.out)
-                tmp = out.with_name(out.name + ".tmp")
-                with open(tmp, "w", encoding="utf-8", newline="") as fh:
-                    n = export_labels(store, fh, args.format, source=args.source)
-                tmp.replace(out)  # a failed export never leaves half a file behind
-    except (LabelingDbError, OSError) as exc:
-        return fail(exc)
-    print(f"exported {n} executions from {store.url}", file=sys.stderr)
+    fmt = export_format(args.out, args.format)
+    to_file = args.out not in (None, "-")
+    if to_file:
+        check_output_file(args.out, suffixes=tuple(SUFFIXES))
+    with open_store(db_url(args), create=False, auto_upgrade=False) as store:
+        if to_file:  # atomic: a failed export never leaves half a file behind
+            with atomic_open(args.out, newline="") as fh:
+                n = export_labels(store, fh, fmt, source=args.source)
+        else:
+            n = export_labels(store, sys.stdout, fmt, source=args.source)
+    print(f"exported {n} executions ({fmt}) from {store.url}", file=sys.stderr)
     return 0
 
 
 def _import(args: argparse.Namespace) -> int:
-    from knotlab.labeling_db.errors import LabelingDbError
-    from knotlab.labeling_db.interchange import import_labels
+    from knotlab.labeling_db.interchange import import_labels, read_labels
     from knotlab.labeling_db.store import open_store
 
-    url = db_url(args)
-    try:
-        with open_store(url, create=True, auto_upgrade=False) as store:
-            n = import_labels(store, args.path, args.format, if_exists=args.if_exists)
-    except (LabelingDbError, OSError) as exc:
-        return fail(exc)
+    items = read_labels(args.path, args.format)  # a bad file is refused before the database opens
+    with open_store(db_url(args), create=True, auto_upgrade=False) as store:
+        n = import_labels(store, args.path, if_exists=args.if_exists, items=items)
     print(f"imported {n} executions into {store.url}", file=sys.stderr)
     return 0
 
@@ -51,14 +70,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     labels = subparsers.add_parser("labels", help="export or import labels (JSONL or CSV)")
     sub = labels.add_subparsers(dest="labels_command", required=True, metavar="ACTION")
     p = sub.add_parser("export", help="write every labelled execution to a file or stdout")
-    p.add_argument("--format", choices=("jsonl", "csv"), default="jsonl")
-    p.add_argument("--out", default=None, help="output file (default: stdout)")
+    p.add_argument(
+        "--format",
+        choices=FORMATS,
+        default=None,
+        help="default: from the --out extension (.jsonl or .csv); jsonl on stdout",
+    )
+    p.add_argument("--out", default=None, help="output file, .jsonl or .csv (default: stdout)")
     p.add_argument("--source", choices=("oracle", "human"), default=None, help="only this source")
     add_db_argument(p)
     p.set_defaults(func=_export)
     p = sub.add_parser("import", help="validate a labels file, then store all of it or nothing")
     p.add_argument("path", help="a .jsonl or .csv file written by `knotlab labels export`")
-    p.add_argument("--format", choices=("jsonl", "csv"), default=None, help="default: by suffix")
+    p.add_argument("--format", choices=FORMATS, default=None, help="default: by suffix")
     p.add_argument(
         "--if-exists",
         choices=("error", "skip"),

@@ -4,12 +4,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
-from pathlib import Path
 
 import numpy as np
 
 from knotlab.app import defaults
+from knotlab.app.options import (
+    SEED,
+    WORKERS,
+    add_no_progress_argument,
+    check_not_shipped,
+    integer,
+    number,
+)
+
+LEVEL_NAME = re.compile(r"[a-z0-9_-]+")  # it becomes part of a file name: no folders, no dots
+
+
+def level_name(text: str) -> str:
+    """An argparse type: a plain level name like main or hard (it goes into file names)."""
+    if not LEVEL_NAME.fullmatch(text):
+        raise argparse.ArgumentTypeError(
+            f"expected a plain name of a-z, 0-9, _ and - (like main or hard), got {text!r}"
+        )
+    return text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -23,16 +42,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "centres, settling them in simulation and rejecting self-intersecting ones. Writes "
         "tasks_<level>_train.npz and tasks_<level>_test.npz; train and test seeds are disjoint.",
     )
-    gen.add_argument("--train", type=int, default=300, help="train tasks (300)")
-    gen.add_argument("--test", type=int, default=500, help="test tasks (500)")
-    gen.add_argument("--rho", type=float, default=0.05, help="tent peak displacement, m (0.05)")
-    gen.add_argument("--seed", type=int, required=True, help="generation seed")
-    gen.add_argument("--centres", type=int, default=7, help="tent centres along the rope (7)")
-    gen.add_argument("--level", default="main", help="level name used in file names (main)")
+    gen.add_argument("--train", type=integer(0), default=300, help="train tasks (300)")
+    gen.add_argument("--test", type=integer(0), default=500, help="test tasks (500)")
+    gen.add_argument(
+        "--rho",
+        type=number(0.0, above=True),
+        default=0.05,
+        help="tent peak displacement, m (0.05)",
+    )
+    gen.add_argument("--seed", type=SEED, required=True, help="generation seed")
+    gen.add_argument(
+        "--centres", type=integer(1), default=7, help="tent centres along the rope (7)"
+    )
+    gen.add_argument(
+        "--level", type=level_name, default="main", help="level name used in file names (main)"
+    )
     gen.add_argument("--library", default=str(defaults.LIBRARY_PATH), help="demo library file")
     gen.add_argument("--out-dir", default=".", help="directory for the task files (.)")
-    gen.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    gen.add_argument("--no-progress", action="store_true", help="no progress bar")
+    gen.add_argument("--workers", type=WORKERS, default=None, help="processes (default: all cores)")
+    gen.add_argument(
+        "--force", action="store_true", help="allow replacing the task sets shipped in static/"
+    )
+    add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a task-set file")
     info.add_argument("path", help="task-set file (.npz)")
@@ -42,16 +73,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate both splits and save them."""
+    from knotlab.core.atomic import check_output_dir, check_output_file
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import generate_tasks
+    from knotlab.core.errors import InvalidInputError
 
+    splits = [(split, n) for split, n in (("train", args.train), ("test", args.test)) if n > 0]
+    if not splits:
+        raise InvalidInputError("--train and --test are both 0: there is nothing to generate")
+    out_dir = check_output_dir(args.out_dir, flag="--out-dir")
+    for split, _ in splits:  # every output is checked before the first simulation
+        path = out_dir / f"tasks_{args.level}_{split}.npz"
+        check_output_file(path, flag="--out-dir")
+        check_not_shipped(path, flag="--out-dir", force=args.force)
     lib = DemoLibrary.load(args.library)
     starts = lib.start_states()
-    out_dir = Path(args.out_dir)
     extra = {"library_hash": lib.content_hash()}
-    for split, n in (("train", args.train), ("test", args.test)):
-        if n <= 0:
-            continue
+    for split, n in splits:
         t0 = time.perf_counter()
         ts = generate_tasks(
             starts,

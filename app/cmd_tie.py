@@ -22,11 +22,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tie the knot; 0 if the final rope is an overhand knot, 1 otherwise."""
+    from knotlab.core.atomic import atomic_path, check_output_file
     from knotlab.core.world.knot import analyse_knot
     from knotlab.core.world.knot_sequence import overhand_sequence
     from knotlab.core.world.rope import straight_rope
     from knotlab.core.world.sim import RopeParams, RopeWorld
 
+    out = check_output_file(args.out, suffixes=(".png",))  # before the simulation runs
     params = RopeParams()
     wall0 = time.perf_counter()
     steps = []
@@ -56,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
                 )
         final = analyse_knot(world.rope_nodes())
         verdict = "overhand knot" if final.is_overhand else "no knot"
-        out = world.render_topdown(args.out, title=f"knotlab tie: {verdict}")
+        with atomic_path(out) as tmp:  # a failed render leaves no half-written picture
+            world.render_topdown(tmp, title=f"knotlab tie: {verdict}")
     summary = {
         "knot": final.is_overhand,
         "determinants": list(final.determinants),

@@ -21,8 +21,15 @@ from pathlib import Path
 import numpy as np
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, default_db_url
-from knotlab.core.errors import KnotlabError
+from knotlab.app.options import (
+    SEED,
+    WORKERS,
+    add_db_argument,
+    add_no_progress_argument,
+    check_not_shipped,
+    default_db_url,
+    number,
+)
 from knotlab.core.selection.labels import LabelledExecution
 
 log = logging.getLogger(__name__)
@@ -53,25 +60,6 @@ def _count_pair(text: str) -> tuple[int, int]:
     return pair
 
 
-def _unwritable_model_path(path: Path, *, force: bool) -> str | None:
-    """Why ``path`` must not be written (a shipped or committed model, a folder), else None."""
-    if path.is_dir():
-        return f"--out {path} is a folder; give a model file name (.npz)"
-    protected = [defaults.STATIC_DIR, defaults.RESULTS_DIR]
-    inside = any(path.resolve().is_relative_to(d.resolve()) for d in protected)
-    if path.exists() and inside and not force:
-        return (
-            f"--out {path} would replace a shipped or committed model; "
-            "write elsewhere or pass --force"
-        )
-    return None
-
-
-def _fail(message: str) -> int:
-    print(f"knotlab train: error: {message}", file=sys.stderr)
-    return 2
-
-
 def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExecution]:
     """Labelled executions from a labels file, or the labelling database's completed episodes."""
     if labels is not None:
@@ -97,30 +85,26 @@ def _json_safe(value):
 
 
 def _run(args: argparse.Namespace) -> int:
+    from knotlab.core.atomic import check_output_dir, check_output_file
     from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.errors import InvalidInputError
     from knotlab.core.selection.model_selection import QModelSearch, SelectBy
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if args.labels is not None and args.db is not None:
-        return _fail("give --labels or --db, not both")
     library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
     out_path = Path(args.out) if args.out else None
-    if out_path is not None:
-        problem = _unwritable_model_path(out_path, force=args.force)
-        if problem:
-            return _fail(problem)
-    try:
-        library = DemoLibrary.load(library_path)
-    except (FileNotFoundError, KnotlabError) as exc:
-        return _fail(str(exc))
-    try:
-        executions = load_executions(args.labels, args.db)
-    except FileNotFoundError as exc:
-        return _fail(f"labels file not found: {exc.filename or exc}")
-    except Exception as exc:  # labeling_db errors: one clear line, not a traceback
-        return _fail(f"cannot read labels: {type(exc).__name__}: {exc}")
+    if out_path is not None:  # before featurising and solving, not after
+        check_output_file(out_path)
+        check_not_shipped(out_path, force=args.force, kind="model")
+    else:
+        check_output_dir(defaults.MODELS_DIR, flag="--out (default folder)")
+    library = DemoLibrary.load(library_path)
+    executions = load_executions(args.labels, args.db)
     if not executions:
-        return _fail("no labelled executions found (label some with `knotlab label` first)")
+        raise InvalidInputError(
+            f"no labelled executions in {args.labels or args.db or default_db_url()} "
+            "(label some with `knotlab label` first)"
+        )
     lib_hash = library.content_hash()
     other_lib = sum(1 for e in executions if e.library_hash not in (None, lib_hash))
     if other_lib:
@@ -142,10 +126,7 @@ def _run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         on_warning=lambda msg: print(f"warning: {msg}", file=sys.stderr),
     )
-    try:
-        search.fit(executions, library)
-    except KnotlabError as exc:
-        return _fail(str(exc))
+    search.fit(executions, library)
     best = search.best_
     model, validation, final = best.model, search.validation_, search.best_model_
     if len(search.sweep_) > 1:
@@ -243,7 +224,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--margin-scale",
-        type=float,
+        type=number(0.0, above=True),
         default=1.0,
         help="value units the median margin is worth (1.0 = one step)",
     )
@@ -273,14 +254,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(greedy's measure, default) or values that rank expert states above dead ends "
         "(lookahead's measure)",
     )
-    p.add_argument("--validation-fraction", type=float, default=0.2)
-    p.add_argument("--seed", type=int, default=0, help="seed of the train/validation split")
+    p.add_argument(
+        "--validation-fraction",
+        type=number(0.0, maximum=1.0),
+        default=0.2,
+        help="share of executions held out for validation, 0 <= f < 1 (0.2)",
+    )
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the train/validation split")
     p.add_argument(
         "--refit-all", action="store_true", help="after validating, refit on every execution"
     )
     p.add_argument(
-        "--workers", type=int, default=None, help="featurising processes (default: cores)"
+        "--workers", type=WORKERS, default=None, help="featurising processes (default: cores)"
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress_argument(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     p.set_defaults(func=_run)

@@ -1,14 +1,26 @@
-"""Exceptions raised by knotlab's core, one per kind of bad input or failed computation."""
+"""Exceptions raised by knotlab's core, one per kind of bad input or failed computation.
+
+Each class says how the command line ends when it escapes a command (``exit_code``): 2 when the
+input was at fault (fix the arguments or files and rerun), 1 when a run on good input failed.
+"""
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 
 class KnotlabError(Exception):
     """Base class of every error knotlab raises on purpose."""
 
+    exit_code: ClassVar[int] = 2  # most are about an input: the user can fix it
+
 
 class InvalidInputError(KnotlabError, ValueError):
     """An argument (array, record, file) does not have the shape, type or values expected."""
+
+
+class OutputPathError(InvalidInputError):
+    """An output path cannot be written: a folder, under a file, read-only, wrong extension."""
 
 
 class CorruptFileError(KnotlabError):
@@ -17,3 +29,5 @@ class CorruptFileError(KnotlabError):
 
 class SolverError(KnotlabError):
     """A numerical solve (QP, linear system) failed or produced non-finite values."""
+
+    exit_code: ClassVar[int] = 1  # the input was accepted; the computation failed

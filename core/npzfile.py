@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.atomic import atomic_open
 from knotlab.core.errors import CorruptFileError
 
 _FIXED_TIME = (1980, 1, 1, 0, 0, 0)
@@ -26,13 +27,12 @@ HEADER_KEY = "header_json"
 def write_npz(path: str | Path, arrays: dict[str, np.ndarray], header: dict) -> Path:
     """Write ``arrays`` plus a JSON ``header`` atomically to ``path`` (deflate-compressed)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     members = dict(sorted(arrays.items()))
     members[HEADER_KEY] = np.frombuffer(
         json.dumps(header, sort_keys=True).encode("utf-8"), dtype=np.uint8
     )
-    tmp = path.with_name(path.name + ".tmp")
-    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    # atomic: a crash or an error never leaves a half-written file (or a stray temporary) behind
+    with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED) as zf:
         for name, arr in members.items():
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
@@ -40,7 +40,6 @@ def write_npz(path: str | Path, arrays: dict[str, np.ndarray], header: dict) -> 
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
             zf.writestr(info, buf.getvalue(), compresslevel=6)
-    tmp.replace(path)  # atomic rename: a crash never leaves a half-written file behind
     return path
 
 
@@ -49,6 +48,8 @@ def read_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict]:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{kind} file not found: {path}")
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder; expected a {kind} file (.npz)")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: np.array(data[k]) for k in data.files}

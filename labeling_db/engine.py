@@ -11,12 +11,13 @@ from urllib.parse import quote
 
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, text
 from sqlalchemy.engine import URL, make_url
-from sqlalchemy.exc import ArgumentError, DBAPIError
+from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError
 from sqlalchemy.pool import NullPool, StaticPool
 
 from knotlab.labeling_db.errors import (
     CorruptDatabaseError,
     DatabaseNotFoundError,
+    DatabaseUrlError,
     LabelingDbError,
     NotADatabaseError,
     SchemaOutdatedError,
@@ -207,9 +208,29 @@ def _readonly_sqlite_status(path: Path, url_text: str) -> SchemaStatus | None:
     raise error
 
 
+_URL_EXAMPLES = "sqlite:///knotlab.db or postgresql+psycopg://user@host/db"
+
+
+def _server_engine(url: URL, *, echo: bool) -> Engine:
+    """An engine for a database server; an unknown dialect or a missing driver names the URL."""
+    text = _url_text(url)
+    try:
+        return create_engine(url, echo=echo, pool_pre_ping=True)
+    except NoSuchModuleError as exc:
+        raise DatabaseUrlError(
+            f"{text}: unknown database dialect {url.drivername!r}; expected a URL like "
+            f"{_URL_EXAMPLES}"
+        ) from exc
+    except ImportError as exc:
+        raise DatabaseUrlError(
+            f"{text}: the database driver for {url.drivername!r} is not installed "
+            f"(No module named {exc.name!r}); install it or use a URL like {_URL_EXAMPLES}"
+        ) from exc
+
+
 def _make_engine(url: URL, *, busy_timeout_s: float, echo: bool) -> Engine:
     if url.get_backend_name() != "sqlite":
-        return create_engine(url, echo=echo, pool_pre_ping=True)
+        return _server_engine(url, echo=echo)
     memory = _sqlite_path(url) is None
     engine = create_engine(
         url,
@@ -241,7 +262,9 @@ def _parse_url(url: str | URL) -> URL:
     try:
         return make_url(url)
     except ArgumentError as exc:
-        raise LabelingDbError(f"{url!r} is not a database URL ({exc})") from exc
+        raise DatabaseUrlError(
+            f"{url!r} is not a database URL ({exc}); expected a URL like {_URL_EXAMPLES}"
+        ) from exc
 
 
 def _prepare(url: str | URL, *, create: bool) -> tuple[URL, str, SchemaStatus | None]:
@@ -290,6 +313,8 @@ def schema_status(url: str | URL = DEFAULT_URL) -> SchemaStatus:
     try:
         with engine.connect() as conn:
             return _status_of(conn, text)
+    except DBAPIError as exc:
+        raise LabelingDbError(f"{text}: cannot open the database ({exc.orig})") from exc
     finally:
         engine.dispose()
 

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from knotlab.core.errors import CorruptFileError, InvalidInputError, KnotlabError
 
 
 class LabelingDbError(KnotlabError):
     """Base class of every error the labelling database raises on purpose."""
+
+
+class DatabaseUrlError(LabelingDbError, InvalidInputError):
+    """A database URL that cannot be parsed, names an unknown dialect, or needs a missing driver."""
 
 
 class DatabaseNotFoundError(LabelingDbError, FileNotFoundError):
@@ -35,6 +41,8 @@ class SchemaTooNewError(SchemaVersionError):
 
 class DatabaseBusyError(LabelingDbError):
     """A write could not get the database lock within the retry budget."""
+
+    exit_code: ClassVar[int] = 1  # the input was fine; another writer held the lock
 
 
 class RecordNotFoundError(LabelingDbError, LookupError):

@@ -443,6 +443,9 @@ def detect_format(path: str | Path) -> Format:
 def read_labels(path: str | Path, fmt: Format | None = None) -> list[StoredExecution]:
     """Read and validate a whole labels file; raises ImportRowError on the first bad row."""
     fmt = fmt or detect_format(path)
+    if not Path(path).is_file():
+        what = "is a folder, not a labels file" if Path(path).is_dir() else "labels file not found"
+        raise FileNotFoundError(f"{path}: {what}")
     try:
         text = Path(path).read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
@@ -462,10 +465,19 @@ def read_labels(path: str | Path, fmt: Format | None = None) -> list[StoredExecu
 
 
 def import_labels(
-    store: Store, path: str | Path, fmt: Format | None = None, *, if_exists: str = "error"
+    store: Store,
+    path: str | Path,
+    fmt: Format | None = None,
+    *,
+    if_exists: str = "error",
+    items: list[StoredExecution] | None = None,
 ) -> int:
-    """Validate a labels file, then store all of it in one transaction; returns how many."""
-    items = read_labels(path, fmt)
+    """Validate a labels file, then store all of it in one transaction; returns how many.
+
+    ``items`` are the file's rows when already read with :func:`read_labels` (the command line
+    reads the file before it opens, and maybe creates, the database).
+    """
+    items = read_labels(path, fmt) if items is None else items
     try:
         ids = store.add_executions(items, if_exists=if_exists)
     except ConflictError as exc:

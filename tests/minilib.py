@@ -20,7 +20,7 @@ import numpy as np
 
 from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
 from knotlab.core.demos.tasks import RopeTask, TaskSet, task_seed
-from knotlab.core.selection.labels import LabelledExecution, LabelledStep
+from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
 from knotlab.core.world.knot_sequence import overhand_sequence
 from knotlab.core.world.rope import straight_rope
 
@@ -97,8 +97,13 @@ def mini_tasks(
     return TaskSet(tasks, meta)
 
 
-def mini_executions(n_demos: int = 2) -> list[LabelledExecution]:
-    """Expert executions replaying each demo on its own start: t0, t1 progress, t2 ties the knot."""
+def mini_executions(n_demos: int = 2, *, dead_ends: bool = False) -> list[LabelledExecution]:
+    """Expert executions replaying each demo on its own start: t0, t1 progress, t2 ties the knot.
+
+    With ``dead_ends`` each execution also records, as dead ends, copies of its three states
+    shifted 1-3 cm in y: hard to tell from the expert states, so how well values separate them
+    (the validation value AUC) depends on the regularisation (C, D).
+    """
     lib = mini_library(n_demos)
     out = []
     for start in sorted(lib.start_states()):
@@ -113,6 +118,12 @@ def mini_executions(n_demos: int = 2) -> list[LabelledExecution]:
             )
             for i, seg in enumerate(segs)
         )
+        shifts = [np.array([0.0, 0.01 * k, 0.0]) for k in range(1, len(steps) + 1)]
+        dead = tuple(
+            DeadEndState(step.cloud_n3 + d, step.rope_nodes_k3 + d)
+            for step, d in zip(steps, shifts, strict=True)
+            if dead_ends
+        )
         out.append(
             LabelledExecution(
                 f"mini-exec-{start}",
@@ -120,6 +131,7 @@ def mini_executions(n_demos: int = 2) -> list[LabelledExecution]:
                 "minilib",
                 steps,
                 ended_in_knot=True,
+                dead_ends=dead,
                 task_id=f"mini-demo-{start}",
                 library_hash=lib.content_hash(),
             )
@@ -138,7 +150,7 @@ def write_mini_files(
     return lib_path, tasks_path
 
 
-def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
+def write_mini_labels(path: Path, n_demos: int = 2, *, dead_ends: bool = False) -> Path:
     """The mini executions as a `knotlab labels export` JSONL file (what `knotlab train` reads)."""
     from datetime import UTC, datetime
 
@@ -147,7 +159,8 @@ def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
 
     when = datetime(2024, 1, 1, tzinfo=UTC)
     items = [
-        StoredExecution(e, started_at=when, finished_at=when) for e in mini_executions(n_demos)
+        StoredExecution(e, started_at=when, finished_at=when)
+        for e in mini_executions(n_demos, dead_ends=dead_ends)
     ]
     path = Path(path)
     with open(path, "w", encoding="utf-8") as fh:
@@ -155,11 +168,11 @@ def write_mini_labels(path: Path, n_demos: int = 2) -> Path:
     return path
 
 
-def mini_train_args(directory: Path) -> tuple[list[str], Path]:
+def mini_train_args(directory: Path, *, dead_ends: bool = False) -> tuple[list[str], Path]:
     """`knotlab train` arguments on the mini library and labels (half held out); model path."""
     directory = Path(directory)
     lib = mini_library(2).save(directory / "lib.npz")
-    labels = write_mini_labels(directory / "labels.jsonl")
+    labels = write_mini_labels(directory / "labels.jsonl", dead_ends=dead_ends)
     out = directory / "model.npz"
     args = ["train", "--labels", str(labels), "--library", str(lib), "--out", str(out)]
     args += ["--validation-fraction", "0.5", "--workers", "1", "--no-progress", "--json"]

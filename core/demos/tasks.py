@@ -133,11 +133,37 @@ def _taskset_from_parts(arrays: dict[str, np.ndarray], header: dict) -> TaskSet:
     n = nodes.shape[0]
     if len(ids) != n or arrays["source_start_t"].shape != (n,) or arrays["seed_t"].shape != (n,):
         raise CorruptFileError("task ids, sources and seeds do not match the number of tasks")
+    check_rope_scale(nodes)
     tasks = [
         RopeTask(str(ids[i]), nodes[i], int(arrays["source_start_t"][i]), int(arrays["seed_t"][i]))
         for i in range(n)
     ]
     return TaskSet(tasks, header["metadata"])
+
+
+def check_rope_scale(start_nodes_tk3: np.ndarray) -> None:
+    """Raise unless every start rope has the simulated rope's node count and arc length.
+
+    The simulator resamples any rope it is given to ``RopeParams``; a task set made for another
+    rope (or in other units) would silently become different tasks, so it is refused instead.
+    """
+    from knotlab.core.world.rope import rope_length
+    from knotlab.core.world.sim import RopeParams
+
+    params = RopeParams()
+    k = params.n_links + 1
+    if start_nodes_tk3.shape[1] != k:
+        raise CorruptFileError(
+            f"ropes have {start_nodes_tk3.shape[1]} nodes; the simulated rope has {k} "
+            f"(RopeParams.n_links = {params.n_links})"
+        )
+    for t, nodes_k3 in enumerate(start_nodes_tk3):
+        length = rope_length(nodes_k3)
+        if not abs(length - params.length) <= params.length_tolerance * params.length:
+            raise CorruptFileError(
+                f"task {t}: rope arc length {length:.4g} m; the simulated rope is "
+                f"{params.length:g} m (within {params.length_tolerance:.0%})"
+            )
 
 
 def task_seed(seed: int, split: str, index: int) -> int:

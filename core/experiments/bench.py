@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.atomic import atomic_open, atomic_path
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import RopeTask, TaskSet
 from knotlab.core.errors import InvalidInputError, KnotlabError
@@ -139,13 +140,9 @@ def _read_identity(path: Path) -> RunIdentity | None:
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
+    with atomic_open(path) as fh:
         json.dump(data, fh, indent=1, sort_keys=False, allow_nan=True)
         fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    tmp.replace(path)
 
 
 # ---------------------------------------------------------------------------- outcome log
@@ -469,8 +466,8 @@ def plot_table(rows: Sequence[dict], path: str | Path, title: str = "") -> Path:
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     return path
 
 

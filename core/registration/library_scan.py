@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.atomic import atomic_path
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration.params import CACHE_VERSION, SCAN, RegistrationParams
 from knotlab.core.registration.rpm import CloudSide, ScanResult, demo_side, run_chunks, scene_side
@@ -109,20 +110,18 @@ class LibraryRegistrar:
         path = self._path(full_key)
         if path is None:
             return
-        path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: getattr(side, f.name) for f in fields(side) if f.name != "_casts"}
         clouds = arrays.pop("clouds")
         reasons = arrays.pop("reason_a")
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(
-            tmp,
-            key=np.array(full_key),
-            reason_a=np.array(reasons, dtype=str),
-            clouds_n=np.array([len(c) for c in clouds]),
-            clouds=np.concatenate(clouds) if clouds else np.zeros((0, 3)),
-            **arrays,
-        )
-        os.replace(tmp, path)  # atomic: a concurrent reader never sees half a file
+        with atomic_path(path) as tmp:  # atomic: a concurrent reader never sees half a file
+            np.savez(
+                tmp,
+                key=np.array(full_key),
+                reason_a=np.array(reasons, dtype=str),
+                clouds_n=np.array([len(c) for c in clouds]),
+                clouds=np.concatenate(clouds) if clouds else np.zeros((0, 3)),
+                **arrays,
+            )
 
     def _load(self, full_key: str, n_demos: int) -> CloudSide | None:
         path = self._path(full_key)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.atomic import atomic_open
 from knotlab.core.errors import CorruptFileError, InvalidInputError
 from knotlab.core.hashing import ContentHash
 from knotlab.core.selection.landmarks import Landmarks
@@ -134,23 +135,22 @@ class QModel:
         """Write the model to a versioned .npz file; returns the path."""
         path = Path(path)
         arrays, meta = self.to_parts()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            payload = {"meta": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays}
+        payload = {"meta": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays}
+        with atomic_open(path, "wb") as fh:  # a crash never leaves a half-written model
             np.savez(fh, **payload)  # type: ignore[arg-type]
-        tmp.replace(path)  # atomic: a crash never leaves a half-written model
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> QModel:
         """Read and validate a model written by :meth:`save`."""
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"model file not found: {path}")
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder; expected a model file (.npz)")
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: np.array(data[k]) for k in data.files}
-        except FileNotFoundError:
-            raise
         except Exception as exc:
             raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
         if "meta" not in arrays:

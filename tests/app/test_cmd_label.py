@@ -16,7 +16,7 @@ pytestmark = pytest.mark.xdist_group("minilib")
 def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
     lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
     url = f"sqlite:///{tmp_path / 'labels.db'}"
-    args = ["label", "--oracle", "--task-file", str(tasks_path), "--library", str(lib_path)]
+    args = ["label", "--oracle", "--task-set", str(tasks_path), "--library", str(lib_path)]
     args += ["--db", url, "--limit", "1", "--sim-budget", "3", "--workers", "1", "--json"]
     assert cli.main(args) == 0
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -36,10 +36,10 @@ def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--candidates", "0"], "--candidates must be >= 1"),
-        (["--candidates", "-3"], "--candidates must be >= 1"),
-        (["--sim-budget", "0"], "--sim-budget must be >= 1"),
-        (["--limit", "-1"], "--limit must be >= 0"),
+        (["--candidates", "0"], "argument --candidates: expected an integer >= 1, got '0'"),
+        (["--candidates", "-3"], "argument --candidates: expected an integer >= 1, got '-3'"),
+        (["--sim-budget", "0"], "argument --sim-budget: expected an integer >= 1"),
+        (["--limit", "-1"], "argument --limit: expected an integer >= 0, got '-1'"),
     ],
 )
 def test_label_refuses_budgets_that_would_simulate_nothing(tmp_path, capsys, extra, message):

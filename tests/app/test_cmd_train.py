@@ -67,25 +67,25 @@ def test_train_sweeps_c_and_d_on_the_validation_split(tmp_path, capsys):
 
 
 def test_train_rejects_a_malformed_grid(tmp_path, capsys):
-    with pytest.raises(SystemExit):
-        cli.main(["train", "--C", "1,abc"])
+    assert cli.main(["train", "--C", "1,abc"]) == 2
     assert "comma" in capsys.readouterr().err
 
 
 def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
-    args, _ = mini_train_args(tmp_path)
-    args += ["--C", "1,100", "--D", "1", "--select", "value_auc"]
-    assert cli.main(args) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["select"] == "value_auc"
-    # No dead ends in the mini labels: the AUC is undefined, so ranking decides as with top1.
-    best = max(
-        summary["sweep"],
-        key=lambda e: (e["validation"]["top1"], -e["validation"]["mean_expert_rank"]),
-    )
-    assert (summary["C"], summary["D"]) == (best["C"], best["D"])
-    with pytest.raises(SystemExit):
-        cli.main([*args[:-1], "nonsense"])
+    # Dead ends that nearly copy the expert states: the value AUC differs across the sweep.
+    args, _ = mini_train_args(tmp_path, dead_ends=True)
+    args += ["--C", "0.01,100", "--D", "0.01,100"]
+    chosen = {}
+    for select in ("top1", "value_auc"):
+        assert cli.main([*args, "--select", select]) == 0
+        summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert summary["select"] == select
+        chosen[select] = (summary["C"], summary["D"])
+    aucs = {(e["C"], e["D"]): e["validation"]["value_auc"] for e in summary["sweep"]}
+    assert len(set(aucs.values())) > 1, aucs  # the data make the choice matter
+    assert aucs[chosen["value_auc"]] == max(aucs.values())
+    assert aucs[chosen["top1"]] < max(aucs.values())  # so value_auc picked another point
+    assert cli.main([*args, "--select", "nonsense"]) == 2
 
 
 def test_train_without_out_never_touches_the_shipped_model(tmp_path, capsys, monkeypatch):

@@ -193,3 +193,35 @@ def test_importing_an_execution_already_stored_changes_nothing(
     assert run("labels", "import", str(path), "--db", target, "--if-exists", "skip") == 0
     with open_store(target) as store:
         assert store.stats()["episodes"] == 8
+
+
+def test_export_format_follows_the_out_extension(source_db: str, tmp_path: Path) -> None:
+    csv_path, jsonl_path = tmp_path / "x.csv", tmp_path / "x.jsonl"
+    assert run("labels", "export", "--db", source_db, "--out", str(csv_path)) == 0
+    assert csv_path.read_text().startswith("row_type,")  # CSV, not JSON lines in a .csv
+    assert run("labels", "export", "--db", source_db, "--out", str(jsonl_path)) == 0
+    assert json.loads(jsonl_path.read_text().splitlines()[0])["format"] == "knotlab-labels"
+    explicit = tmp_path / "y.csv"
+    assert (
+        run("labels", "export", "--format", "csv", "--db", source_db, "--out", str(explicit)) == 0
+    )
+    assert explicit.read_bytes() == csv_path.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.csv", "x.jsonl", "y.csv"]
+
+
+def test_db_and_labels_actions_are_wired_in_the_real_parser() -> None:
+    from knotlab.app import cmd_db, cmd_labels
+
+    parser = cli.build_parser()
+    wired = {
+        "db init": cmd_db._init,
+        "db upgrade": cmd_db._upgrade,
+        "db stats --json": cmd_db._stats,
+        "labels export --format csv --source oracle --out x.csv": cmd_labels._export,
+        "labels import x.jsonl --if-exists skip": cmd_labels._import,
+    }
+    for line, func in wired.items():
+        args = parser.parse_args([*line.split(), "--db", "sqlite:///k.db"])
+        assert args.func is func and args.db == "sqlite:///k.db", line
+    args = parser.parse_args(["labels", "import", "x.csv", "--url", "sqlite:///old.db"])
+    assert args.db == "sqlite:///old.db" and args.if_exists == "error" and args.format is None

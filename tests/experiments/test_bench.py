@@ -334,9 +334,10 @@ def test_ray_engine_runs_the_same_jobs_on_actors(files, tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (("--tasks", "0"), "--tasks must be >= 1"),
-        (("--max-steps", "0"), "--max-steps must be >= 1"),
-        (("--first", "0"), "--first must be >= 1"),
+        (("--tasks", "0"), "argument --tasks: expected an integer >= 1, got '0'"),
+        (("--max-steps", "0"), "argument --max-steps: expected an integer >= 1"),
+        (("--first", "0"), "argument --first: expected an integer >= 1"),
+        (("--noise", "nan"), "argument --noise: expected a finite number >= 0"),
     ],
 )
 def test_bench_refuses_counts_that_would_not_be_a_table(files, tmp_path, capsys, extra, message):
@@ -352,7 +353,7 @@ def test_bench_refuses_counts_that_would_not_be_a_table(files, tmp_path, capsys,
     assert not (tmp_path / "out").exists()
 
 
-def test_a_run_whose_episodes_errored_is_not_a_result(files, tmp_path, capsys):
+def test_a_run_whose_episodes_errored_is_not_a_result(files, tmp_path, capsys, monkeypatch):
     from knotlab.core.demos.tasks import RopeTask, TaskSet
 
     good = TaskSet.load(files["tasks"])
@@ -364,6 +365,13 @@ def test_a_run_whose_episodes_errored_is_not_a_result(files, tmp_path, capsys):
     path = scaled.save(tmp_path / "scaled.npz")
     args = _bench_args(files, tmp_path / "out", policies="nn")
     args[args.index("--task-set") + 1] = str(path)
+    # The task-set loader refuses such a file before anything runs ...
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "rope arc length" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+    # ... so let it through to check what the episodes themselves do with it.
+    monkeypatch.setattr(TaskSet, "load", classmethod(lambda cls, p: scaled))
     rc = cli.main(args)
     captured = capsys.readouterr()
     recs = [

@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from knotlab.core.selection.labels import LabelledStep
 from knotlab.labeling_db.store import open_store
@@ -126,7 +125,19 @@ def test_a_writer_killed_mid_transaction_loses_nothing_committed(db_url: str) ->
         con.close()
 
 
-@pytest.mark.parametrize("n", [1])
-def test_spawned_children_can_import_this_module(n: int) -> None:
+def _report_workers(queue: mp.Queue) -> None:
+    """Runs in a spawned child: which of this module's workers it found, and its process id."""
+    queue.put(([f.__name__ for f in (_labeller_process, _killed_writer)], os.getpid()))
+
+
+def test_spawned_children_can_import_this_module() -> None:
     """Guard: the workers above are importable under spawn (they live at module level)."""
-    assert callable(_labeller_process) and callable(_killed_writer) and n == 1
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_report_workers, args=(queue,))
+    child.start()
+    names, pid = queue.get(timeout=60)
+    child.join(60)
+    assert child.exitcode == 0
+    assert names == ["_labeller_process", "_killed_writer"]
+    assert pid == child.pid != os.getpid()  # computed in the child, not here

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -151,14 +149,12 @@ def test_invariant_under_z_rotation_translation_and_scale(name, angle, shift, sc
     assert got.n_crossings == ref.n_crossings
 
 
-def test_analysis_is_fast_on_a_41_node_rope() -> None:
-    rope = resample_by_arc_length(trefoil(), 41)
-    times = []
-    for _ in range(30):
-        t0 = time.perf_counter()
-        analyse_knot(rope)
-        times.append(time.perf_counter() - t0)
-    assert np.median(times) < 0.005
+def test_a_trefoil_resampled_to_the_simulated_41_nodes_is_still_an_overhand_knot() -> None:
+    # (its speed, < 5 ms a call, is measured by bench/knot_speed.py, not asserted in tests)
+    for mirror in (False, True):
+        result = analyse_knot(resample_by_arc_length(trefoil(mirror), 41))
+        assert result.is_overhand and result.n_crossings == 3
+        assert result.determinants == (3, 3)
 
 
 @pytest.fixture(scope="module")

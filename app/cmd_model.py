@@ -1,0 +1,88 @@
+"""`knotlab model info`: what a saved QModel is: features, hashes, settings and how it scored."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+# Training metrics worth a line in the text view (the rest are in --json).
+_SHOWN_METRICS = ("train_top1", "train_mean_expert_rank", "bellman_mean_abs_error", "status")
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def model_summary(model) -> dict:
+    """The `knotlab model info --json` keys of a loaded QModel."""
+    from knotlab.core.world.observation import ObservationModel
+
+    spec = model.feature_spec
+    return {
+        "hash": model.content_hash(),
+        "library_hash": spec.get("library_hash"),
+        # models saved before the key existed were trained on camera clouds (features.py)
+        "observation_model": spec.get("observation_model", ObservationModel.CLOUD.value),
+        "feature_set": spec.get("feature_set"),
+        "n_features": model.n_features,
+        "feature_names": list(spec.get("names", [])),
+        "n_actions": len(spec.get("action_keys", [])),
+        "landmark_hash": spec.get("landmark_hash"),
+        "hyperparameters": model.hyperparameters,
+        "metrics": {k: v for k, v in model.metrics.items() if k != "training_run"},
+        "training_run": model.metrics.get("training_run"),
+    }
+
+
+def run_info(args: argparse.Namespace) -> int:
+    """Load (validating) a model and print what it is."""
+    from knotlab.core.selection.qmodel import QModel
+
+    s = model_summary(QModel.load(args.path))
+    if args.json:
+        print(json.dumps(_json_safe({"path": str(args.path), **s}), sort_keys=True))
+        return 0
+    print(f"{args.path}: knotlab QModel, hash {s['hash']}")
+    print(f"  library:       {s['library_hash']} ({s['n_actions']} demos)")
+    print(f"  observation:   {s['observation_model']}")
+    names = s["feature_names"]
+    more = f", ... ({len(names) - 12} more; all in --json)" if len(names) > 12 else ""
+    print(f"  features:      {s['n_features']} ({s['feature_set']}): {', '.join(names[:12])}{more}")
+    print(f"  landmarks:     {s['landmark_hash'] or 'none'}")
+    hyper = ", ".join(f"{k}={v}" for k, v in s["hyperparameters"].items())
+    print(f"  hyper-params:  {hyper}")
+    metrics = s["metrics"]
+    shown = [
+        f"{k}={metrics[k]:.3g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}"
+        for k in _SHOWN_METRICS
+        if k in metrics
+    ]
+    print(f"  training:      {', '.join(shown) or '-'}")
+    run = s["training_run"] or {}
+    val = run.get("validation")
+    if val:
+        print(
+            f"  validation:    top-1 {val['top1']:.3f}, top-3 {val['top3']:.3f}, mean expert rank "
+            f"{val['mean_expert_rank']:.2f} ({val['n_states']} states; labels {run.get('labels')})"
+        )
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `knotlab model info` to the command line."""
+    parser = subparsers.add_parser("model", help="inspect a trained Q-function model")
+    sub = parser.add_subparsers(dest="model_command", required=True, metavar="ACTION")
+    info = sub.add_parser(
+        "info",
+        help="features, hashes, observation model, hyper-parameters and training metrics",
+    )
+    info.add_argument("path", help="model file (.npz) written by `knotlab train`")
+    info.add_argument("--json", action="store_true", help="print one JSON object")
+    info.set_defaults(func=run_info)
