@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from knotlab.app.options import (
     integer,
     number,
 )
+from knotlab.core.jsonsafe import json_safe
 
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
@@ -30,16 +30,6 @@ def resolve_model_path(arg: str | None, out_dir: Path) -> Path | None:
         if candidate.exists():
             return candidate
     return None
-
-
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -138,7 +128,7 @@ def _run(args: argparse.Namespace) -> int:
             "wall_s": round(result.wall_s, 3),
             "table": result.rows,
         }
-        print(json.dumps(_json_safe(summary)))
+        print(json.dumps(json_safe(summary)))
     errored = {
         p: sum(r["failure_kind"] == "error" for r in recs) for p, recs in result.outcomes.items()
     }

@@ -4,20 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+
+from knotlab.core.jsonsafe import json_safe
 
 # Training metrics worth a line in the text view (the rest are in --json).
 _SHOWN_METRICS = ("train_top1", "train_mean_expert_rank", "bellman_mean_abs_error", "status")
-
-
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def model_summary(model) -> dict:
@@ -47,7 +38,7 @@ def run_info(args: argparse.Namespace) -> int:
 
     s = model_summary(QModel.load(args.path))
     if args.json:
-        print(json.dumps(_json_safe({"path": str(args.path), **s}), sort_keys=True))
+        print(json.dumps(json_safe({"path": str(args.path), **s}), sort_keys=True))
         return 0
     print(f"{args.path}: knotlab QModel, hash {s['hash']}")
     print(f"  library:       {s['library_hash']} ({s['n_actions']} demos)")

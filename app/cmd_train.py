@@ -18,8 +18,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from knotlab.app import defaults
 from knotlab.app.options import (
     SEED,
@@ -30,6 +28,7 @@ from knotlab.app.options import (
     default_db_url,
     number,
 )
+from knotlab.core.jsonsafe import json_safe
 from knotlab.core.selection.labels import LabelledExecution
 
 log = logging.getLogger(__name__)
@@ -70,18 +69,6 @@ def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExec
 
     with open_store(db_url or default_db_url(), create=False, auto_upgrade=False) as store:
         return store.training_executions()
-
-
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, np.floating | np.integer):
-        return _json_safe(value.item())
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -182,7 +169,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.json:
         print(
             json.dumps(
-                _json_safe(
+                json_safe(
                     {
                         "model": str(out_path),
                         "model_hash": final.content_hash(),
