@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import add_db_argument, db_url, integer
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -66,6 +66,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         host=args.host,
         port=args.port,
         lite_rendering=lite_rendering,
+        sim_workers=args.sim_workers,
     )
 
 
@@ -123,6 +124,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
     p.add_argument("--top-k", type=_top_k, default=5, help="candidates shown per state (1-9)")
+    p.add_argument(
+        "--sim-workers",
+        type=integer(0),
+        default=2,
+        help="processes that simulate tries for all tabs (0: in the server process)",
+    )
+    p.add_argument(
+        "--sim-workers",
+        type=integer(0),
+        default=2,
+        help="processes that simulate tries for all tabs (0: in the server process)",
+    )
     p.add_argument(
         "--lite-rendering",
         action="store_true",

@@ -15,6 +15,7 @@ import viser
 
 from knotlab.app.web.jobs import RetrainJob, RetrainReport
 from knotlab.app.web.resources import AppResources, qmodel_from_store
+from knotlab.app.web.sim_pool import SimPool
 from knotlab.app.web.tab import LabelTab
 from knotlab.labeling_db.store import Store
 
@@ -33,10 +34,13 @@ class LabelApp:
         host: str = "127.0.0.1",
         port: int = 8080,
         lite_rendering: bool = False,
+        sim_workers: int = 2,
     ) -> None:
         self.store = store
         self.resources = resources
         self.retrain_job = RetrainJob(store.url, str(library_path))
+        # Tries run in worker processes (0: on the tab's own thread, e.g. for debugging).
+        self.sim_pool = SimPool(str(library_path), sim_workers) if sim_workers > 0 else None
         self._retrain_text = ""
         self._retrain_fraction = 0.0
         self._tabs: dict[int, LabelTab] = {}
@@ -165,6 +169,8 @@ class LabelApp:
         self.retrain_job.stop()
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
+        if self.sim_pool is not None:
+            self.sim_pool.close()
 
 
 def load_models(

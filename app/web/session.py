@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -34,6 +35,8 @@ from knotlab.labeling_db.records import EpisodeInfo, StateProvenance
 from knotlab.labeling_db.store import Store
 
 FRAME_DT = 1.0 / 30.0  # s of simulated time between animation frames
+# How a try is simulated: (state, cloud, demo index, frame recorder) -> outcome.
+Simulate = Callable[[SimSnapshot, np.ndarray, int, FrameRecorder], ActionOutcome]
 
 
 class Phase(StrEnum):
@@ -129,6 +132,7 @@ class LabelSession:
         *,
         world: RopeWorld | None = None,
         max_steps: int = MAX_STEPS,
+        simulate: Simulate | None = None,
     ) -> None:
         if not labeller.strip():
             raise SessionError("the labeller's name must not be empty")
@@ -138,6 +142,7 @@ class LabelSession:
         self.max_steps = max_steps
         self.world = world if world is not None else RopeWorld()
         self._own_world = world is None
+        self._simulate = simulate  # None: simulate tries in this process
         self._lock = threading.RLock()
         self.phase = Phase.CHOOSING
         self.episode: EpisodeInfo | None = None
@@ -294,15 +299,16 @@ class LabelSession:
             snapshot, cloud = self.snapshot, self.cloud_n3
         assert snapshot is not None and cloud is not None
         t0 = time.perf_counter()
+        rec = recorder if recorder is not None else FrameRecorder(FRAME_DT)
         try:
-            self.world.restore(snapshot)
-            outcome = apply_demo(
-                self.world,
-                self.res.transferer,
-                cloud,
-                cand.ranked.demo_index,
-                frames=recorder if recorder is not None else FrameRecorder(FRAME_DT),
-            )
+            if self._simulate is not None:  # in a worker process; then continue from its end
+                outcome = self._simulate(snapshot, cloud, cand.ranked.demo_index, rec)
+                self.world.restore(outcome.snapshot_after)
+            else:
+                self.world.restore(snapshot)
+                outcome = apply_demo(
+                    self.world, self.res.transferer, cloud, cand.ranked.demo_index, frames=rec
+                )
             frames = outcome.execution.frames if outcome.execution is not None else None
             word = "knot" if outcome.knot else (outcome.failure_kind or "progressed")
             word = str(getattr(word, "value", word))

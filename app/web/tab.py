@@ -76,7 +76,13 @@ class LabelTab:
         """Start (or resume) this labeller's session."""
         try:
             self.client.local_storage.set_item(NAME_KEY, name.strip())
-            session = LabelSession(self.app.store, self.app.resources, name)
+            pool = self.app.sim_pool
+            session = LabelSession(
+                self.app.store,
+                self.app.resources,
+                name,
+                simulate=None if pool is None else pool.simulate,
+            )
             view = session.start()
         except Exception as exc:
             self._notify("cannot start labelling", str(exc), "red")

@@ -68,7 +68,14 @@ def wait_until(pred: Callable[[], object], timeout: float = 20.0, what: str = "c
 def app_args(db_url: str, **over) -> argparse.Namespace:
     """The `knotlab app` arguments of a test server (any free port, shipped files)."""
     args = dict(
-        db=db_url, library=None, level="main", model=None, host="127.0.0.1", port=0, top_k=5
+        db=db_url,
+        library=None,
+        level="main",
+        model=None,
+        host="127.0.0.1",
+        port=0,
+        top_k=5,
+        sim_workers=1,  # one try process: the suite shares two cores with another worker
     )
     args.update(over)
     return argparse.Namespace(**args)

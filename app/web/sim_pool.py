@@ -1,0 +1,129 @@
+"""Tries simulated in worker processes, their frames streamed back while they run.
+
+PyBullet keeps the GIL while it steps, so a try simulated on a server thread slows every other
+tab's scan, drawing and websocket traffic. Worker processes (spawned, one simulator each) run
+the tries instead; each frame is sent back through a queue as it is recorded, so the animation
+starts at once. The episode's own world is then restored to the returned snapshot.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from knotlab.core.parallel import PerProcess
+from knotlab.core.registration.planner import ActionOutcome
+from knotlab.core.world.frames import FrameRecorder
+from knotlab.core.world.sim import SimSnapshot
+
+_DONE = "done"
+
+
+def _build_tools(library_path: str) -> tuple[Any, Any]:
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.registration.planner import DemoTransferer
+    from knotlab.core.world.sim import RopeWorld
+
+    return RopeWorld(), DemoTransferer(DemoLibrary.load(library_path))
+
+
+_TOOLS = PerProcess(_build_tools)  # per worker process: library path -> (world, transferer)
+
+
+class _StreamingRecorder(FrameRecorder):
+    """A recorder that also sends every frame to the app process."""
+
+    def __init__(self, dt: float, out: Any) -> None:
+        super().__init__(dt)
+        self._out = out
+
+    def add(self, t: float, nodes_k3: np.ndarray, grippers_g3: np.ndarray, closed_g) -> None:
+        """Record the frame and send it on."""
+        super().add(t, nodes_k3, grippers_g3, closed_g)
+        self._out.put((float(t), self._nodes[-1], self._grippers[-1], self._closed[-1]))
+
+
+def _init(library_path: str) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _TOOLS.get(library_path)
+
+
+def _try_job(
+    library_path: str,
+    snapshot: SimSnapshot,
+    cloud_n3: np.ndarray,
+    demo_index: int,
+    frame_dt: float,
+    frames_out: Any,
+) -> ActionOutcome:
+    from knotlab.core.registration.planner import apply_demo
+
+    world, transferer = _TOOLS.get(library_path)
+    try:
+        world.restore(snapshot)
+        recorder = _StreamingRecorder(frame_dt, frames_out)
+        return apply_demo(world, transferer, cloud_n3, demo_index, frames=recorder)
+    finally:
+        frames_out.put(_DONE)
+
+
+class SimPool:
+    """Worker processes that simulate tries for every tab of the app."""
+
+    def __init__(self, library_path: str, workers: int = 2) -> None:
+        ctx = mp.get_context("spawn")
+        self.library_path = library_path
+        self._manager = ctx.Manager()
+        self._pool = ProcessPoolExecutor(
+            max_workers=workers, mp_context=ctx, initializer=_init, initargs=(library_path,)
+        )
+        # Start the workers now (imports and simulator), not on the first Enter.
+        for f in [self._pool.submit(os.getpid) for _ in range(workers)]:
+            f.result(timeout=120)
+
+    def simulate(
+        self,
+        snapshot: SimSnapshot,
+        cloud_n3: np.ndarray,
+        demo_index: int,
+        recorder: FrameRecorder,
+    ) -> ActionOutcome:
+        """Run one try in a worker; ``recorder`` fills with its frames as they are simulated."""
+        frames_in = self._manager.Queue()
+        future = self._pool.submit(
+            _try_job, self.library_path, snapshot, cloud_n3, demo_index, recorder.dt, frames_in
+        )
+
+        def pump() -> None:
+            while True:
+                try:
+                    item = frames_in.get(timeout=0.5)
+                except queue.Empty:
+                    if future.done():
+                        break
+                    continue
+                except (EOFError, OSError):  # the manager went away (server stopping)
+                    break
+                if item == _DONE:
+                    break
+                recorder.add(*item)
+            recorder.finished = True
+
+        pumper = threading.Thread(target=pump, name="try-frames", daemon=True)
+        pumper.start()
+        try:
+            return future.result()
+        finally:
+            pumper.join(timeout=5)
+            recorder.finished = True
+
+    def close(self) -> None:
+        """Stop the workers."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._manager.shutdown()
