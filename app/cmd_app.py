@@ -67,6 +67,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         port=args.port,
         lite_rendering=lite_rendering,
         sim_workers=args.sim_workers,
+        test_tasks_path=defaults.task_set_path(args.level, "test"),
     )
 
 
@@ -124,12 +125,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
     p.add_argument("--top-k", type=_top_k, default=5, help="candidates shown per state (1-9)")
-    p.add_argument(
-        "--sim-workers",
-        type=integer(0),
-        default=2,
-        help="processes that simulate tries for all tabs (0: in the server process)",
-    )
     p.add_argument(
         "--sim-workers",
         type=integer(0),

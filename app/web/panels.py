@@ -13,6 +13,7 @@ from knotlab.app.web.scene import candidate_label, rank_colour
 from knotlab.app.web.session import Phase, SessionView
 
 MAX_LISTED = 9  # hotkeys 1-9 select by rank
+_UNSET = object()
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,7 @@ class LabelPanels:
         gui = client.gui
         icon = viser.Icon
         gui.set_panel_label("knotlab: label demonstrations")
-        tabs = gui.add_tab_group()
+        tabs = self.tabs = gui.add_tab_group()
         with tabs.add_tab("Label", icon=icon.HAND_CLICK):
             self.status = gui.add_markdown("Connecting...")
             with gui.add_folder("Candidates (ranked)"):
@@ -80,6 +81,7 @@ class LabelPanels:
             self.model_dropdown = gui.add_dropdown("Rank with", ("nearest neighbour",))
             self.model_table = gui.add_markdown("")
         self._model_options: dict[str, str | None] = {}
+        self._sent: dict[tuple[int, str], object] = {}
         self._syncing = False
         self._wire()
 
@@ -149,27 +151,36 @@ class LabelPanels:
         if view.last_try is not None:
             t = view.last_try
             lines.append(f"tried #{t.rank} {t.demo_key}: **{t.word}** ({t.wall_s:.1f} s)")
-        self.status.content = "  \n".join(lines)
+        self._set(self.status, "content", "  \n".join(lines))
         shown = {c.ranked.rank: c for c in view.candidates}
         for r, button in enumerate(self.cand_buttons, start=1):
             c = shown.get(r)
-            button.visible = c is not None
+            self._set(button, "visible", c is not None)
             if c is None:
                 continue
             rejected = r in view.rejected
             cost = f"cost {c.ranked.nn_cost:.3f}"
-            button.label = candidate_label(c) + f" · {cost}" + (" · rejected" if rejected else "")
-            button.color = "gray" if rejected else rank_colour(r)
-            button.icon = viser.Icon.ARROW_RIGHT if r == view.selected else None
-            button.disabled = phase is not Phase.CHOOSING or rejected
+            label = candidate_label(c) + f" · {cost}" + (" · rejected" if rejected else "")
+            self._set(button, "label", label)
+            self._set(button, "color", "gray" if rejected else rank_colour(r))
+            self._set(button, "icon", viser.Icon.ARROW_RIGHT if r == view.selected else None)
+            self._set(button, "disabled", phase is not Phase.CHOOSING or rejected)
         choosing, judging = phase is Phase.CHOOSING, phase is Phase.JUDGING
-        self.try_button.disabled = not (choosing and view.selected is not None)
         acceptable = judging and view.last_try is not None and view.last_try.acceptable
-        self.accept_button.disabled = not acceptable
-        self.reject_button.disabled = not judging
-        self.dead_button.disabled = not judging
-        self.resample_button.disabled = phase in (Phase.TRYING, Phase.NO_STARTS)
-        self.undo_button.disabled = phase is Phase.TRYING
+        self._set(self.try_button, "disabled", not (choosing and view.selected is not None))
+        self._set(self.accept_button, "disabled", not acceptable)
+        self._set(self.reject_button, "disabled", not judging)
+        self._set(self.dead_button, "disabled", not judging)
+        self._set(self.resample_button, "disabled", phase in (Phase.TRYING, Phase.NO_STARTS))
+        self._set(self.undo_button, "disabled", phase is Phase.TRYING)
+
+    def _set(self, handle: object, prop: str, value: object) -> None:
+        """Assign a GUI property only when it changes: every assignment is a websocket message,
+        and a new state would otherwise resend ~50 of them."""
+        key = (id(handle), prop)
+        if self._sent.get(key, _UNSET) != value:
+            setattr(handle, prop, value)
+            self._sent[key] = value
 
     def show_progress(self, today: int, total: int, starts_left: int, view: SessionView) -> None:
         """Labels today and in total, starts left, step within the episode."""

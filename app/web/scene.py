@@ -1,7 +1,7 @@
 """Draws one tab's session in its 3D scene: table, rope tube, cloud, ranked candidates, animation.
 
-Scene paths: /table, /rope, /cloud, /grippers/{left,right}, /candidates/{rank}/{path_g,grasp_i,
-release_i,label,warped}. Only this module and panels.py call viser.
+Scene paths: /table, and under /label (hidden while Inspect draws its own view): rope, cloud,
+grippers/{left,right}, candidates/{rank}/{path_g,grasp_i,release_i,label}, warped.
 """
 
 from __future__ import annotations
@@ -67,7 +67,12 @@ class SceneDrawer:
             "/table", color=(225, 222, 212), dimensions=(1.6, 1.2, 0.02), position=(0, 0, -0.011)
         )
         self.scene.add_grid("/grid", width=1.6, height=1.2, cell_size=0.1, position=(0, 0, 0.0005))
+        self.label_root = self.scene.add_frame("/label", show_axes=False)
         self.scene.on_click()(self._scene_click)
+
+    def set_label_visible(self, visible: bool) -> None:
+        """Show or hide everything the labelling view draws (Inspect draws its own)."""
+        self.label_root.visible = visible
 
     # ------------------------------------------------------------------ state
     def draw(self, view: SessionView, *, look: bool = False, show_warped: bool = False) -> None:
@@ -76,10 +81,10 @@ class SceneDrawer:
             if view.rope_nodes_k3 is not None:
                 self.draw_rope(view.rope_nodes_k3)
             else:
-                self.scene.remove_by_name("/rope")
+                self.scene.remove_by_name("/label/rope")
             if view.cloud_n3 is not None:
                 self.scene.add_point_cloud(
-                    "/cloud",
+                    "/label/cloud",
                     np.asarray(view.cloud_n3, dtype=np.float32),
                     CLOUD_COLOUR,
                     point_size=0.008,
@@ -87,8 +92,8 @@ class SceneDrawer:
                     precision="float32",
                 )
             else:
-                self.scene.remove_by_name("/cloud")
-            self.scene.remove_by_name("/grippers")
+                self.scene.remove_by_name("/label/cloud")
+            self.scene.remove_by_name("/label/grippers")
             self.draw_candidates(view)
         if look and view.rope_nodes_k3 is not None:
             self.look_at(view.rope_nodes_k3)
@@ -97,7 +102,7 @@ class SceneDrawer:
         """The rope as a closed tube mesh."""
         nodes = np.asarray(nodes_k3)
         self.scene.add_mesh_simple(
-            "/rope",
+            "/label/rope",
             tube_vertices(nodes, ROPE_RADIUS),
             tube_faces(len(nodes), 12),
             color=ROPE_COLOUR,
@@ -113,14 +118,14 @@ class SceneDrawer:
 
     def draw_candidates(self, view: SessionView) -> None:
         """Every candidate's warped trajectories, markers and 3D label; selected one thicker."""
-        self.scene.remove_by_name("/candidates")
+        self.scene.remove_by_name("/label/candidates")
         self._polylines = {}
         for c in view.candidates:
             rank = c.ranked.rank
             rejected = rank in view.rejected
             colour = GREY if rejected else rank_colour(rank)
             selected = rank == view.selected
-            base = f"/candidates/{rank}"
+            base = f"/label/candidates/{rank}"
             lines = []
             for g in range(2):
                 pts = c.positions_gt3[g]
@@ -165,11 +170,11 @@ class SceneDrawer:
 
     def show_warped(self, rank: int | None, cloud_n3: np.ndarray | None) -> None:
         """Show one candidate's demo cloud warped onto the scene (None hides it)."""
-        self.scene.remove_by_name("/warped")
+        self.scene.remove_by_name("/label/warped")
         if rank is None or cloud_n3 is None:
             return
         self.scene.add_point_cloud(
-            "/warped",
+            "/label/warped",
             np.asarray(cloud_n3, dtype=np.float32),
             rank_colour(rank),
             point_size=0.008,
@@ -203,7 +208,7 @@ class SceneDrawer:
         before the try is hidden (it no longer describes the rope).
         """
         self.stop_animation()
-        self.scene.remove_by_name("/cloud")
+        self.scene.remove_by_name("/label/cloud")
         self._anim_stop = threading.Event()
         stop = self._anim_stop
         self.first_frame_at = None
@@ -230,7 +235,7 @@ class SceneDrawer:
                         if not active_g[g]:
                             continue
                         self.scene.add_icosphere(
-                            f"/grippers/{name}",
+                            f"/label/grippers/{name}",
                             radius=0.018 if closed[g] else 0.012,
                             color=colour if closed[g] else (60, 60, 60),
                             position=_xyz(grippers[g]),

@@ -11,6 +11,7 @@ import logging
 import threading
 from pathlib import Path
 
+import numpy as np
 import viser
 
 from knotlab.app.web.jobs import RetrainJob, RetrainReport
@@ -35,8 +36,11 @@ class LabelApp:
         port: int = 8080,
         lite_rendering: bool = False,
         sim_workers: int = 2,
+        test_tasks_path: Path | None = None,
     ) -> None:
         self.store = store
+        self._test_tasks_path = test_tasks_path
+        self._test_tasks = None
         self.resources = resources
         self.retrain_job = RetrainJob(store.url, str(library_path))
         # Tries run in worker processes (0: on the tab's own thread, e.g. for debugging).
@@ -82,6 +86,23 @@ class LabelApp:
             tab = self._tabs.pop(client.client_id, None)
         if tab is not None:
             tab.close()
+
+    def start_nodes(self, split: str, number: int) -> np.ndarray:
+        """The start rope of training start or test task ``number`` (for Inspect)."""
+        from knotlab.core.demos.tasks import TaskSet
+        from knotlab.core.errors import InvalidInputError
+
+        if split == "train":
+            tasks = self.resources.tasks
+        else:
+            if self._test_tasks is None:
+                if self._test_tasks_path is None:
+                    raise InvalidInputError("this app was started without a test task set")
+                self._test_tasks = TaskSet.load(self._test_tasks_path)
+            tasks = self._test_tasks
+        if not 0 <= number < len(tasks):
+            raise InvalidInputError(f"{split} tasks are numbered 0-{len(tasks) - 1}, got {number}")
+        return np.asarray(tasks[number].start_nodes_k3)
 
     # ------------------------------------------------------------------ models
     def model_rows(self) -> list[tuple[str, str | None, str]]:

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Literal
 
 import viser
 
+from knotlab.app.web.inspect import Inspector
+from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.scene import SceneDrawer
 from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
@@ -54,6 +56,15 @@ class LabelTab:
                 toggle_warped=lambda _on: self._redraw_warped(),
             ),
         )
+        with self.panels.tabs.add_tab("Inspect", icon=viser.Icon.ZOOM_QUESTION):
+            self.inspector = Inspector(app.resources)
+            self.inspect = InspectPanel(
+                client,
+                self.inspector,
+                current_nodes=lambda: None if self.session is None else self.session.nodes_k3,
+                start_nodes=app.start_nodes,
+                set_label_visible=self.drawer.set_label_visible,
+            )
         self.refresh_models()
         self.show_retrain()
 
@@ -171,10 +182,11 @@ class LabelTab:
         if session is None:
             return
         view = session.view()
-        self.drawer.draw(view, look=look)
-        self.panels.show(view)
-        self._redraw_warped()
-        self._show_progress()
+        with self.client.atomic():  # one batch: the browser redraws once, not per message
+            self.drawer.draw(view, look=look)
+            self.panels.show(view)
+            self._redraw_warped()
+            self._show_progress()
         self.client.flush()
 
     def _redraw_warped(self) -> None:
@@ -236,6 +248,7 @@ class LabelTab:
         self.drawer.stop_animation()
         if self.session is not None:
             self.session.close()
+        self.inspector.close()
 
 
 def _trying(view):

@@ -25,14 +25,14 @@ def test_page_loads_with_k_candidates_in_scene_and_list(tabs, app):
     for rank in range(1, k + 1):
         assert wait_until(
             lambda r=rank: (
-                _scene_has(tab.page, f"/candidates/{r}/path_0")
-                or _scene_has(tab.page, f"/candidates/{r}/path_1")
+                _scene_has(tab.page, f"/label/candidates/{r}/path_0")
+                or _scene_has(tab.page, f"/label/candidates/{r}/path_1")
             ),
             10,
             f"path {rank}",
         )
         assert tab.button(f"#{rank} ").first.is_visible()
-    assert _scene_has(tab.page, "/rope") and _scene_has(tab.page, "/cloud")
+    assert _scene_has(tab.page, "/label/rope") and _scene_has(tab.page, "/label/cloud")
     tab.screenshot("labelling")
 
 
@@ -217,3 +217,30 @@ def test_a_server_restart_resumes_the_labellers_episode(browser, tmp_path):
         context.close()
         second.stop()
         second.store.close()
+
+
+def test_inspect_shows_the_three_policies_plot_and_registration(tabs):
+    tab = tabs("mo")
+    page = tab.page
+    page.get_by_role("tab", name="Inspect").click()
+    page.get_by_role("button", name="Inspect", exact=True).click()
+    panel = tab.server_tab.inspect
+    wait_until(lambda: tab.server_tab.inspector.view is not None, 20, "inspected state")
+    view = tab.server_tab.inspector.view
+    assert view.choices.nn is not None and view.choices.greedy is not None
+    from playwright.sync_api import expect
+
+    expect(page.get_by_text("nearest neighbour", exact=True).first).to_be_visible()
+    assert panel.plot.image.shape[0] > 100  # the contribution bar plot was rendered
+    page.get_by_role("button", name="Run lookahead(2, 5)").click()
+    wait_until(lambda: view.search_progress >= 1.0, 180, "the lookahead search")
+    assert view.choices.lookahead is not None and view.search_error is None
+    expect(page.get_by_text("root candidate")).to_be_visible()
+    page.locator("label", has_text="Show A's registration in 3D").click()
+    wait_until(lambda: _scene_has(page, "/inspect/warped"), 10, "registration drawn")
+    assert _scene_has(page, "/inspect/correspondence")
+    assert tab.server_tab.drawer.label_root.visible is False  # labelling view hidden meanwhile
+    tab.screenshot("inspect")
+    page.locator("label", has_text="Show A's registration in 3D").click()
+    wait_until(lambda: not _scene_has(page, "/inspect/warped"), 10, "registration hidden")
+    assert tab.server_tab.drawer.label_root.visible is True

@@ -1,0 +1,182 @@
+"""Inspect one state for a researcher: what NN, greedy and lookahead choose and why. No viser.
+
+The inspector has its own simulator, so a lookahead search (which simulates) never disturbs a
+labelling episode; the search runs on a background thread and reports its expansions.
+Shape suffixes: a = demos, n = cloud points, k = rope nodes.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from knotlab.app.web.resources import AppResources, RankingModel
+from knotlab.core.registration import ScanResult
+from knotlab.core.registration.planner import DemoTransferer, TransferPlan
+from knotlab.core.selection.explain import Contribution, PolicyChoices, feature_contributions
+from knotlab.core.selection.policies import LookaheadPolicy, StepContext
+from knotlab.core.selection.ranking import RankedDemo, rank_demos
+from knotlab.core.world.sim import RopeWorld
+
+SHOWN = 10  # candidates listed (by the model's ranking)
+
+
+class _CountingTransferer(DemoTransferer):
+    """A transferer that reports every plan (one per simulated expansion) for a progress bar."""
+
+    def __init__(self, base: DemoTransferer, on_plan: Callable[[], None]) -> None:
+        super().__init__(base.library, base.params)
+        self._on_plan = on_plan
+
+    def plan(self, cloud_n3: np.ndarray, demo_index: int) -> TransferPlan:
+        """Plan as usual, then count it."""
+        out = super().plan(cloud_n3, demo_index)
+        self._on_plan()
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationView:
+    """One candidate's registration onto the scene: clouds, correspondences and costs."""
+
+    demo_key: str
+    demo_cloud_n3: np.ndarray  # the demo's own rope, where it was recorded
+    warped_n3: np.ndarray  # f(demo cloud): the demo rope mapped onto the scene
+    pairs_n23: np.ndarray  # warped point -> its nearest scene point, for lines
+    costs: dict[str, float]
+
+
+@dataclass
+class InspectView:
+    """A state's decision, explained."""
+
+    label: str
+    nodes_k3: np.ndarray
+    cloud_n3: np.ndarray
+    ranking: list[RankedDemo]
+    nn_rank_of: dict[int, int]  # demo index -> its rank by registration cost (1 = nearest)
+    choices: PolicyChoices
+    model: str
+    contributions: dict[int, list[Contribution]] = field(default_factory=dict)
+    search_progress: float = 0.0  # 0..1 while the lookahead searches
+    search_error: str | None = None
+
+
+class Inspector:
+    """Explains decisions on any rope state, with its own simulator."""
+
+    def __init__(self, resources: AppResources) -> None:
+        self.res = resources
+        self.world = RopeWorld()
+        self._lock = threading.Lock()
+        self.view: InspectView | None = None
+        self._scan: ScanResult | None = None
+        self._ranking: RankingModel | None = None
+        self._search: threading.Thread | None = None
+        self._generation = 0  # a newer load makes an older search's result stale
+
+    def load(self, nodes_k3: np.ndarray, label: str) -> InspectView:
+        """Observe, scan and rank this rope; NN and greedy choices and every Q's contributions."""
+        ranking = self.res.current
+        with self._lock:
+            self._generation += 1
+            self.world.reset(np.asarray(nodes_k3, dtype=float))
+            nodes = self.world.rope_nodes()
+            fz = ranking.featurizer
+            cloud = fz.observe(self.world)
+            phi, scan = fz.features(cloud) if ranking.model is not None else (None, fz.scan(cloud))
+            keys = self.res.library.keys
+            ranked = rank_demos(scan, phi, ranking.model, keys, SHOWN)
+            by_cost = rank_demos(scan, None, None, keys)
+            nn_rank = {r.demo_index: r.rank for r in by_cost}
+            contributions = {}
+            if ranking.model is not None and phi is not None:
+                names = tuple(fz.feature_spec.names)
+                contributions = {
+                    r.demo_index: feature_contributions(ranking.model, phi[r.demo_index], names)
+                    for r in ranked
+                }
+            choices = PolicyChoices(
+                nn=by_cost[0].demo_index if by_cost else 0,
+                greedy=ranked[0].demo_index if ranking.model is not None and ranked else None,
+            )
+            self._scan, self._ranking, self._phi = scan, ranking, phi
+            self.view = InspectView(
+                label, nodes, cloud, ranked, nn_rank, choices, ranking.label, contributions
+            )
+            return self.view
+
+    def start_lookahead(
+        self, depth: int, width: int, on_update: Callable[[InspectView], None]
+    ) -> bool:
+        """Run lookahead(depth, width) on the loaded state in the background; False if busy."""
+        with self._lock:
+            view, ranking = self.view, self._ranking
+            if view is None or ranking is None or ranking.model is None:
+                return False
+            if self._search is not None and self._search.is_alive():
+                return False
+            generation, scan, phi = self._generation, self._scan, self._phi
+            snapshot = self.world.snapshot()
+        budget = max(1, depth * width)
+        done = [0]
+
+        def counted() -> None:
+            done[0] += 1
+            view.search_progress = min(0.99, done[0] / budget)
+            on_update(view)
+
+        def search() -> None:
+            policy = LookaheadPolicy(ranking.model, depth, width)
+            transferer = _CountingTransferer(self.res.transferer, counted)
+            t0 = time.perf_counter()
+            try:
+                with self._lock:
+                    self.world.restore(snapshot)
+                    ctx = StepContext(
+                        self.world, view.cloud_n3, scan, ranking.featurizer, transferer, 0, 5
+                    )
+                    ctx._phi_ad = phi
+                    decision = policy.choose(ctx)
+                    self.world.restore(snapshot)
+                if generation != self._generation:
+                    return
+                view.choices.lookahead = decision.action
+                view.choices.lookahead_name = policy.name
+                view.choices.lookahead_info = {**decision.info, "wall_s": time.perf_counter() - t0}
+            except Exception as exc:  # shown in the panel; the inspector stays usable
+                view.search_error = f"{type(exc).__name__}: {exc}"
+            view.search_progress = 1.0
+            on_update(view)
+
+        self._search = threading.Thread(target=search, name="inspect-lookahead", daemon=True)
+        self._search.start()
+        return True
+
+    def registration(self, demo_index: int) -> RegistrationView:
+        """Demo cloud, its warp onto the scene, nearest-point pairs and the cost parts."""
+        with self._lock:
+            assert self._scan is not None and self.view is not None
+            scan, cloud = self._scan, self.view.cloud_n3
+        demo = self.res.library[demo_index]
+        warped = scan.f(demo_index).evaluate(demo.pre_cloud_n3)
+        _, nearest = cKDTree(cloud).query(warped)
+        pairs = np.stack([warped, cloud[nearest]], axis=1)
+        costs = scan.costs(demo_index)
+        return RegistrationView(
+            demo.key,
+            demo.pre_cloud_n3,
+            warped,
+            pairs,
+            {k: float(v) for k, v in vars(costs).items()},
+        )
+
+    def close(self) -> None:
+        """Free the simulator."""
+        with self._lock:
+            self.world.close()

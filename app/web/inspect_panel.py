@@ -1,0 +1,253 @@
+"""The Inspect tab: pick a state, see NN / greedy / lookahead side by side, the Q of every
+candidate split into feature contributions (table and bar plot), a lookahead search running in
+the background with its tree, and one candidate's registration drawn in 3D (/inspect/...).
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import threading
+from collections.abc import Callable
+
+import numpy as np
+import viser
+
+from knotlab.app.web.geometry import tube_faces, tube_vertices
+from knotlab.app.web.inspect import Inspector, InspectView
+from knotlab.core.selection.explain import lookahead_tree
+
+log = logging.getLogger(__name__)
+SOURCES = ("current labelling state", "training start", "test task")
+N_BARS = 8  # feature contributions plotted per candidate
+
+
+def contribution_plot(view: InspectView, demos: list[int], keys: tuple[str, ...]) -> np.ndarray:
+    """A bar plot (RGB image) of the largest feature contributions of one or two candidates."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    fig, axes = plt.subplots(1, len(demos), figsize=(4.2 * len(demos), 3.0), squeeze=False)
+    for ax, a in zip(axes[0], demos, strict=True):
+        parts = view.contributions.get(a, [])[:N_BARS][::-1]
+        names = [p.name for p in parts]
+        values = [p.contribution for p in parts]
+        ax.barh(names, values, color=["#009e73" if v >= 0 else "#d55e00" for v in values])
+        ax.axvline(0, color="k", lw=0.6)
+        q = next((r.q for r in view.ranking if r.demo_index == a), None)
+        ax.set_title(f"{keys[a]}  Q = {q:.2f}" if q is not None else keys[a], fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("weight x standardised feature", fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    buf.seek(0)
+    return np.asarray(Image.open(buf).convert("RGB"))
+
+
+class InspectPanel:
+    """The Inspect tab of one browser tab (its own Inspector and simulator)."""
+
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        inspector: Inspector,
+        current_nodes: Callable[[], np.ndarray | None],
+        start_nodes: Callable[[str, int], np.ndarray],
+        set_label_visible: Callable[[bool], None],
+    ) -> None:
+        self.client = client
+        self.inspector = inspector
+        self._current_nodes = current_nodes
+        self._start_nodes = start_nodes
+        self._set_label_visible = set_label_visible
+        self._lock = threading.Lock()
+        gui = client.gui
+        self.source = gui.add_dropdown("State", SOURCES)
+        self.index = gui.add_number("Number", 0, min=0, step=1)
+        self.inspect_button = gui.add_button("Inspect", icon=viser.Icon.SEARCH)
+        self.choices = gui.add_markdown("Pick a state and press Inspect.")
+        self.search_button = gui.add_button("Run lookahead(2, 5)", disabled=True)
+        self.search_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
+        self.tree = gui.add_markdown("")
+        self.table = gui.add_markdown("")
+        self.cand_a = gui.add_dropdown("Candidate A", ("-",))
+        self.cand_b = gui.add_dropdown("Candidate B", ("-",))
+        self.plot = gui.add_image(np.full((10, 10, 3), 255, np.uint8), label="Q contributions")
+        self.compare = gui.add_markdown("")
+        self.show_3d = gui.add_checkbox("Show A's registration in 3D", False)
+        self._keys_to_index: dict[str, int] = {}
+        self.inspect_button.on_click(lambda _e: self.run_inspect())
+        self.search_button.on_click(lambda _e: self.run_search())
+        self.cand_a.on_update(lambda _e: self.show_candidates())
+        self.cand_b.on_update(lambda _e: self.show_candidates())
+        self.show_3d.on_update(lambda _e: self.draw_3d())
+
+    # ------------------------------------------------------------------ actions
+    def run_inspect(self) -> None:
+        """Load the chosen state and explain its decision."""
+        source = self.source.value
+        try:
+            if source == SOURCES[0]:
+                nodes = self._current_nodes()
+                if nodes is None:
+                    raise ValueError("no labelling state yet")
+                label = "the current labelling state"
+            else:
+                split = "train" if source == SOURCES[1] else "test"
+                number = int(self.index.value)
+                nodes = self._start_nodes(split, number)
+                label = f"{split} task {number}"
+            view = self.inspector.load(nodes, label)
+        except Exception as exc:
+            self.choices.content = f"**cannot inspect**: {exc}"
+            return
+        self.search_button.disabled = view.choices.greedy is None
+        self.search_bar.visible = False
+        self.tree.content = ""
+        keys = self.inspector.res.library.keys
+        options = tuple(keys[r.demo_index] for r in view.ranking)
+        self._keys_to_index = {keys[r.demo_index]: r.demo_index for r in view.ranking}
+        self.cand_a.options = options or ("-",)
+        self.cand_b.options = options or ("-",)
+        if len(options) > 1:
+            self.cand_b.value = options[1]  # type: ignore[misc]
+        self.show(view)
+        self.show_candidates()
+        self.draw_3d()
+
+    def run_search(self) -> None:
+        """Start the lookahead search (progress and tree update as it runs)."""
+        self.search_bar.visible = True
+        self.search_bar.value = 0.0  # type: ignore[misc]
+        if not self.inspector.start_lookahead(2, 5, self._on_search):
+            self.tree.content = "a search is running already (or no model to search with)"
+
+    def _on_search(self, view: InspectView) -> None:
+        self.search_bar.value = 100.0 * view.search_progress  # type: ignore[misc]
+        if view.search_progress >= 1.0:
+            self.search_bar.visible = False
+            self.show(view)
+
+    # ------------------------------------------------------------------ drawing
+    def show(self, view: InspectView) -> None:
+        """The three policies' choices, the lookahead tree and the candidate table."""
+        keys = self.inspector.res.library.keys
+        c = view.choices
+
+        def name(a: int | None) -> str:
+            return "-" if a is None else f"`{keys[a]}`"
+
+        la = name(c.lookahead) if c.lookahead is not None else "(not run yet)"
+        if view.search_error:
+            la = f"failed: {view.search_error}"
+        verdict = "all agree" if c.agree() and c.lookahead is not None else ""
+        self.choices.content = (
+            f"**{view.label}**, ranked by {view.model}  \n"
+            f"| policy | chooses |\n|---|---|\n| nearest neighbour | {name(c.nn)} |\n"
+            f"| greedy Q | {name(c.greedy)} |\n| lookahead(2, 5) | {la} |\n\n{verdict}"
+        )
+        info = c.lookahead_info
+        if info:
+            rows = lookahead_tree(info, keys)
+            lines = [
+                f"search: {info.get('expansions', 0)} simulated expansions in "
+                f"{info.get('wall_s', 0):.1f} s; knot found: "
+                f"**{'yes' if info.get('goal_found') else 'no'}**",
+                "",
+                "| root candidate | depth reached | backed-up value |",
+                "|---|---|---|",
+            ]
+            lines += [f"| `{k}` | {d} | {v:.2f} |" for k, d, v in rows]
+            self.tree.content = "\n".join(lines)
+        table = [
+            "| rank | demo | Q | cost | NN rank |",
+            "|---|---|---|---|---|",
+        ]
+        for r in view.ranking:
+            q = "-" if r.q is None else f"{r.q:.2f}"
+            nn = view.nn_rank_of.get(r.demo_index, "-")
+            table.append(f"| {r.rank} | `{r.demo_key}` | {q} | {r.nn_cost:.3f} | {nn} |")
+        self.table.content = "\n".join(table)
+
+    def _picked(self) -> list[int]:
+        out = []
+        for dd in (self.cand_a, self.cand_b):
+            a = self._keys_to_index.get(dd.value)
+            if a is not None and a not in out:
+                out.append(a)
+        return out
+
+    def show_candidates(self) -> None:
+        """Bar plot of A's (and B's) contributions, and their costs side by side."""
+        view = self.inspector.view
+        picked = self._picked()
+        if view is None or not picked:
+            return
+        keys = self.inspector.res.library.keys
+        if view.contributions:
+            self.plot.image = contribution_plot(view, picked, keys)
+        regs = [self.inspector.registration(a) for a in picked]
+        names = ["map_fwd", "map_bwd", "bend_f", "bend_g", "residual_fwd_m", "residual_bwd_m"]
+        head = "| | " + " | ".join(f"`{r.demo_key}`" for r in regs) + " |"
+        rows = [head, "|---" * (len(regs) + 1) + "|"]
+        for n in names:
+            rows.append(
+                f"| {n} | " + " | ".join(f"{r.costs.get(n, np.nan):.4f}" for r in regs) + " |"
+            )
+        self.compare.content = "\n".join(rows)
+        self.draw_3d()
+
+    def draw_3d(self) -> None:
+        """Draw (or hide) the inspected rope and candidate A's registration."""
+        scene = self.client.scene
+        on = bool(self.show_3d.value)
+        self._set_label_visible(not on)
+        scene.remove_by_name("/inspect")
+        view = self.inspector.view
+        picked = self._picked()
+        if not on or view is None or not picked:
+            return
+        reg = self.inspector.registration(picked[0])
+        with self.client.atomic():
+            nodes = np.asarray(view.nodes_k3)
+            scene.add_mesh_simple(
+                "/inspect/rope",
+                tube_vertices(nodes, 0.01),
+                tube_faces(len(nodes), 12),
+                color=(196, 120, 60),
+                opacity=0.5,
+            )
+            scene.add_point_cloud(
+                "/inspect/scene_cloud",
+                np.asarray(view.cloud_n3, np.float32),
+                (40, 90, 200),
+                point_size=0.008,
+                precision="float32",
+            )
+            scene.add_point_cloud(
+                "/inspect/demo_cloud",
+                np.asarray(reg.demo_cloud_n3, np.float32),
+                (150, 150, 150),
+                point_size=0.007,
+                precision="float32",
+            )
+            scene.add_point_cloud(
+                "/inspect/warped",
+                np.asarray(reg.warped_n3, np.float32),
+                (0, 158, 115),
+                point_size=0.009,
+                point_shape="diamond",
+                precision="float32",
+            )
+            scene.add_line_segments(
+                "/inspect/correspondence",
+                np.asarray(reg.pairs_n23, np.float32),
+                (230, 159, 0),
+                thickness=1.5,
+                thickness_units="screen",
+            )

@@ -1,0 +1,55 @@
+"""Why a policy chose a demo: Q split into per-feature contributions, and the three policies'
+choices for one state side by side (nearest neighbour, greedy Q, lookahead beam search).
+Shape suffixes: a = demos, d = features.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from knotlab.core.selection.qmodel import QModel
+
+
+@dataclass(frozen=True)
+class Contribution:
+    """One feature's share of Q(s, a): weight times standardised feature."""
+
+    name: str
+    value: float  # the raw feature
+    contribution: float  # w_j * (phi_j - mean_j) / scale_j
+
+
+def feature_contributions(
+    model: QModel, phi_d: np.ndarray, names: tuple[str, ...] | list[str]
+) -> list[Contribution]:
+    """Every feature's contribution to Q(s, a), largest magnitude first (they sum to Q - bias)."""
+    phi = np.asarray(phi_d, dtype=float)
+    z = (phi - model.feature_mean_d) / model.feature_scale_d
+    contrib = model.weights_d * z
+    order = np.argsort(-np.abs(contrib), kind="stable")
+    return [Contribution(str(names[j]), float(phi[j]), float(contrib[j])) for j in order]
+
+
+@dataclass
+class PolicyChoices:
+    """The demo each policy picks in one state (lookahead filled in when its search ends)."""
+
+    nn: int
+    greedy: int | None
+    lookahead: int | None = None
+    lookahead_name: str = ""
+    lookahead_info: dict = field(default_factory=dict)
+
+    def agree(self) -> bool:
+        """True when every policy that has chosen picked the same demo."""
+        picks = {p for p in (self.nn, self.greedy, self.lookahead) if p is not None}
+        return len(picks) == 1
+
+
+def lookahead_tree(info: dict, keys: tuple[str, ...]) -> list[tuple[str, int, float]]:
+    """The search's root candidates as (demo key, depth reached, backed-up value), best first."""
+    backed = info.get("backed_up", {})
+    rows = [(keys[int(a)], int(d), float(v)) for a, (d, v) in backed.items()]
+    return sorted(rows, key=lambda r: (-r[1], -r[2]))
