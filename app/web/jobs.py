@@ -148,8 +148,9 @@ class RetrainJob:
         proc.join(timeout=5)
         with self._lock:
             self._process = None
-            self.last = final
-        on_report(final)
+        on_report(final)  # the app switches models here ...
+        with self._lock:
+            self.last = final  # ... before anyone waiting on ``last`` sees the job as done
 
     def stop(self) -> None:
         """Terminate a running retrain (server shutdown)."""

@@ -78,11 +78,13 @@ class LabelPanels:
             self.retrain_button = gui.add_button("Retrain on all labels", icon=icon.PLAYER_PLAY)
             self.retrain_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
             self.retrain_status = gui.add_markdown("")
-            self.model_dropdown = gui.add_dropdown("Rank with", ("nearest neighbour",))
+            self.model_dropdown = gui.add_dropdown("Model", ("nearest neighbour",))
+            # A button, not the dropdown's own update: a dropdown echoes its value back when
+            # its options change (after a retrain), which must not switch models by itself.
+            self.use_model_button = gui.add_button("Rank with this model")
             self.model_table = gui.add_markdown("")
         self._model_options: dict[str, str | None] = {}
         self._sent: dict[tuple[int, str], object] = {}
-        self._syncing = False
         self._wire()
 
     def _wire(self) -> None:
@@ -98,9 +100,9 @@ class LabelPanels:
         self.retrain_button.on_click(lambda _e: a.retrain())
         self.show_warped.on_update(lambda _e: a.toggle_warped(bool(self.show_warped.value)))
 
-        @self.model_dropdown.on_update
+        @self.use_model_button.on_click
         def _(_e) -> None:
-            if not self._syncing and self.model_dropdown.value in self._model_options:
+            if self.model_dropdown.value in self._model_options:
                 a.use_model(self._model_options[self.model_dropdown.value])
 
         gui = self.client.gui
@@ -195,14 +197,10 @@ class LabelPanels:
     def show_models(self, rows: list[tuple[str, str | None, str]], current: str | None) -> None:
         """The model list (label, version, description) and the dropdown to switch."""
         self._model_options = {label: version for label, version, _ in rows}
-        self._syncing = True
-        try:
-            self.model_dropdown.options = tuple(self._model_options)
-            for label, version, _ in rows:
-                if version == current:
-                    self.model_dropdown.value = label  # type: ignore[misc]
-        finally:
-            self._syncing = False
+        self.model_dropdown.options = tuple(self._model_options)
+        for label, version, _ in rows:
+            if version == current:
+                self.model_dropdown.value = label  # type: ignore[misc]
         table = ["| model | trained | labels | val top-1 | V-AUC |", "|---|---|---|---|---|"]
         table += [desc for _, _, desc in rows if desc]
         self.model_table.content = "\n".join(table)

@@ -41,14 +41,14 @@ def test_list_and_3d_click_select_the_same_candidate(tabs):
     tab.button("#3 ").first.click()
     wait_until(lambda: tab.session.view().selected == 3, 10, "list selection")
     panels = tab.server_tab.panels
-    assert panels.cand_buttons[2].icon == viser.Icon.ARROW_RIGHT
+    wait_until(lambda: panels.cand_buttons[2].icon == viser.Icon.ARROW_RIGHT, 10, "list mark")
     assert panels.cand_buttons[0].icon is None
     # 3D: click candidate 2's grasp marker where the browser's camera shows it.
     cand = tab.session.candidate(2)
     wait_until(lambda: tab.server_tab.client.camera is not None, 5, "camera")
     tab.click_world(cand.grasp_points[0])
     wait_until(lambda: tab.session.view().selected == 2, 10, "3D selection")
-    assert panels.cand_buttons[1].icon == viser.Icon.ARROW_RIGHT
+    wait_until(lambda: panels.cand_buttons[1].icon == viser.Icon.ARROW_RIGHT, 10, "list mark")
     assert panels.cand_buttons[2].icon is None
 
 
