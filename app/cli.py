@@ -17,6 +17,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_train",
     "knotlab.app.cmd_bench",
     "knotlab.app.cmd_app",
+    "knotlab.app.cmd_suggest",
 )
 
 
