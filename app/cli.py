@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_bench",
     "knotlab.app.cmd_app",
     "knotlab.app.cmd_suggest",
+    "knotlab.app.cmd_playback",
 )
 
 
