@@ -39,6 +39,7 @@ class DecisionsStore(StoreBase):
         """Every labelled step and dead-end mark of episodes in ``statuses``, oldest first."""
 
         def work(s: Session) -> list[StateVisit]:
+            live = select(Episode.id).where(Episode.status.in_(list(statuses)))
             episodes = {
                 row.id: row
                 for row in s.execute(
@@ -51,7 +52,7 @@ class DecisionsStore(StoreBase):
             chosen: dict[int, dict[int, str]] = defaultdict(dict)
             for ep_id, step, demo in s.execute(
                 select(Label.episode_id, Label.step_index, Label.chosen_demo)
-                .where(Label.episode_id.in_(list(episodes)))
+                .where(Label.episode_id.in_(live))
                 .order_by(Label.episode_id, Label.step_index)
             ):
                 chosen[ep_id][step] = demo
@@ -59,7 +60,7 @@ class DecisionsStore(StoreBase):
             for ep_id, step in s.execute(
                 select(DeadEnd.episode_id, RopeState.episode_step)
                 .join(RopeState, DeadEnd.state_id == RopeState.id)
-                .where(DeadEnd.episode_id.in_(list(episodes)))
+                .where(DeadEnd.episode_id.in_(live))
             ):
                 if step is not None:  # a dead end without its step cannot be placed
                     marked[ep_id].add(int(step))
