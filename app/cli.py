@@ -26,6 +26,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_bench",
     "knotlab.app.cmd_model",
     "knotlab.app.cmd_app",
+    "knotlab.app.cmd_suggest",
+    "knotlab.app.cmd_playback",
 )
 DEBUG_ENV = "KNOTLAB_DEBUG"
 # OS errors on a path the user named: the input is at fault, not the run.

@@ -91,3 +91,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_db_argument(p)
     p.set_defaults(func=_import)
+    from knotlab.app.cmd_agreement import register_agreement
+
+    register_agreement(sub)

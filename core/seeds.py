@@ -28,3 +28,16 @@ def child_seed(seed: int, *spawn_key: int) -> int:
 def generator(*parts: int) -> np.random.Generator:
     """A Generator seeded by the integer tuple ``parts``."""
     return np.random.default_rng(np.random.SeedSequence([int(p) for p in parts]))
+
+
+def text_seed(seed: int, text: str) -> int:
+    """32-bit seed of ``seed`` and a string key (a task id): order-free per-item randomness."""
+    import hashlib
+
+    digest = int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "little")
+    return derive_seed(int(seed), digest)
+
+
+def text_uniform(seed: int, text: str) -> float:
+    """A uniform number in [0, 1) fixed by ``seed`` and a string key."""
+    return text_seed(seed, text) / 2.0**32

@@ -12,7 +12,9 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
+from knotlab.labeling_db.decisions import start_key
 from knotlab.labeling_db.errors import (
     ConflictError,
     InvalidRecordError,
@@ -61,6 +63,31 @@ def _resume_nodes(nodes_k3: np.ndarray) -> list[list[float]]:
         raise InvalidRecordError(f"resume rope nodes: {exc}") from exc
     assert checked is not None
     return [[float(v) for v in row] for row in checked]
+
+
+def _second_labeller_start(s: Session, labeller_id: int, overlap: OverlapPolicy) -> int | None:
+    """The oldest start with one live episode, not this labeller's, that ``overlap`` offers."""
+    live = Episode.status != "abandoned"
+    held_once = (
+        select(Episode.start_state_id)
+        .where(live, Episode.start_state_id.is_not(None))
+        .group_by(Episode.start_state_id)
+        .having(func.count() == 1)
+    )
+    mine = (
+        select(Episode.id)
+        .where(Episode.start_state_id == RopeState.id, Episode.labeller_id == labeller_id, live)
+        .exists()
+    )
+    rows = s.execute(
+        select(RopeState.id, RopeState.task_id)
+        .where(RopeState.role == "start", RopeState.id.in_(held_once), ~mine)
+        .order_by(RopeState.id)
+    )
+    for sid, task_id in rows:
+        if overlap.offers_second(start_key(task_id, sid, -1)):
+            return int(sid)
+    return None
 
 
 class LabellingStore(StoreBase):
@@ -157,8 +184,15 @@ class LabellingStore(StoreBase):
         task_id: str | None = None,
         library_hash: str | None = None,
         metadata: Mapping[str, Any] | None = None,
+        overlap: OverlapPolicy | None = None,
     ) -> EpisodeInfo | None:
-        """Start an episode on `state_id`, or claim the next unlabelled start state (None: none)."""
+        """Start an episode on `state_id`, or claim the next unlabelled start state (None: none).
+
+        With an ``overlap`` policy, a start another labeller already holds (its one live
+        episode) is claimable too when the policy offers it to a second labeller: the claim is
+        the oldest of those and the unlabelled starts. Without one (the default), only starts
+        with no live episode are claimed.
+        """
         _check_key("labeller", labeller)
         _check_key("execution_id", execution_id, optional=True)
         _check_key("task_id", task_id, optional=True)
@@ -180,6 +214,10 @@ class LabellingStore(StoreBase):
                     .order_by(RopeState.id)
                     .limit(1)
                 ).first()
+                if overlap is not None and overlap.overlap > 0:
+                    second = _second_labeller_start(s, lid, overlap)
+                    if second is not None and (sid is None or second < sid):
+                        sid = second
                 if sid is None:
                     return None
             else:

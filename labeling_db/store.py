@@ -18,6 +18,7 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 # The store's public surface in one place (records and schema functions live in their modules).
+from knotlab.labeling_db.decisions import DecisionsStore
 from knotlab.labeling_db.engine import (
     DEFAULT_URL,
     _is_corruption,
@@ -78,7 +79,7 @@ __all__ = [
 ]
 
 
-class Store(LabellingStore, ExecutionsStore, ModelStore):
+class Store(LabellingStore, ExecutionsStore, ModelStore, DecisionsStore):
     """The labelling database. Every method runs as its own committed transaction."""
 
     # --- statistics

@@ -8,7 +8,9 @@ Shape suffixes: n = cloud points, k = rope nodes, a = demos.
 
 from __future__ import annotations
 
+import base64
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -27,6 +29,23 @@ log = logging.getLogger(__name__)
 MAX_STEPS = 5
 FAILURE_KINDS: tuple[str, ...] = tuple(k.value for k in FailureKind)
 _NUMERIC_ERRORS = (KnotlabError, FloatingPointError, np.linalg.LinAlgError, ValueError)
+NODES_UNIT_M = 1e-4  # rope nodes in results files: int16 tenths of a millimetre (+-3.2 m)
+
+
+def encode_nodes(nodes_k3: np.ndarray) -> str | None:
+    """Rope nodes as base64 of little-endian int16 in 0.1 mm (None if not finite or too far)."""
+    q = np.asarray(nodes_k3, dtype=float) / NODES_UNIT_M
+    if q.ndim != 2 or q.shape[1] != 3 or not np.all(np.isfinite(q)) or np.abs(q).max() > 32767:
+        return None  # a blown-up rope: nothing worth replaying from
+    return base64.b64encode(np.round(q).astype("<i2").tobytes()).decode("ascii")
+
+
+def decode_nodes(text: str) -> np.ndarray:
+    """Inverse of :func:`encode_nodes`: (k, 3) float metres."""
+    raw = np.frombuffer(base64.b64decode(text, validate=True), dtype="<i2")
+    if raw.size % 3:
+        raise KnotlabError(f"encoded rope nodes hold {raw.size} numbers, not a multiple of 3")
+    return raw.reshape(-1, 3).astype(float) * NODES_UNIT_M
 
 
 @dataclass
@@ -65,6 +84,11 @@ class EpisodeOutcome:
     chosen: tuple[str, ...] = ()
     outcomes: tuple[str, ...] = ()
     stages: tuple[int, ...] = ()
+    # For playback (absent from files written before them): the chosen demo's score per step
+    # (Q, or -registration cost for NN; None if not finite) and the rope before each step
+    # (`encode_nodes`).
+    scores: tuple[float | None, ...] = ()
+    nodes_before: tuple[str | None, ...] = ()
 
     @classmethod
     def errored(cls, task_id: str, policy: str, message: str, wall_s: float = 0.0):
@@ -85,6 +109,8 @@ class EpisodeOutcome:
             "chosen": list(self.chosen),
             "outcomes": list(self.outcomes),
             "stages": [int(s) for s in self.stages],
+            "scores": [None if v is None else round(v, 6) for v in self.scores],
+            "nodes_before": list(self.nodes_before),
         }
 
 
@@ -123,6 +149,8 @@ class EpisodeRecord:
             tuple(s.chosen_key for s in self.steps),
             tuple(s.outcome for s in self.steps),
             tuple(int(s.stage) for s in self.steps),
+            tuple(_finite(s.scores_a[s.chosen]) for s in self.steps),
+            tuple(encode_nodes(s.nodes_before_k3) for s in self.steps),
         )
 
     def summary(self) -> dict:
@@ -130,7 +158,12 @@ class EpisodeRecord:
         return self.outcome().to_dict()
 
 
-def _step_seed(seed: int, step: int) -> int:
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def step_seed(seed: int, step: int) -> int:
+    """Observation-noise seed of step ``step`` of an episode seeded ``seed`` (replays use it)."""
     return derive_seed(seed, step)
 
 
@@ -177,7 +210,7 @@ def run_episode(
         nodes_before = world.rope_nodes()
         try:
             t0 = time.perf_counter()
-            cloud = featurizer.observe(world, noise=observe_noise, seed=_step_seed(seed, step))
+            cloud = featurizer.observe(world, noise=observe_noise, seed=step_seed(seed, step))
             scan = featurizer.scan(cloud)
             t_scan = time.perf_counter() - t0
             ctx = StepContext(world, cloud, scan, featurizer, transferer, step, max_steps - step)

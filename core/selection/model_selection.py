@@ -166,6 +166,61 @@ def featurize_executions(
     return parts, warnings
 
 
+class FeatureCache:
+    """Per-execution training data kept between fits, keyed by library, landmarks and execution.
+
+    Featurising (one library scan per state) dominates a fit; a loop that refits on growing
+    label sets (active learning, the app's retrain) reuses the rows of executions it has already
+    featurised. Only valid while the landmark set is the same: it is part of the key.
+    """
+
+    def __init__(self) -> None:
+        self._parts: dict[tuple[str, str | None, str], TrainingData | str] = {}
+
+    def __len__(self) -> int:
+        return len(self._parts)
+
+    def featurize(
+        self,
+        executions: Sequence[LabelledExecution],
+        library,
+        *,
+        landmarks=None,
+        workers: int | None = None,
+        progress: bool = True,
+    ) -> tuple[list[TrainingData | None], list[str]]:
+        """Like `featurize_executions`, featurising only executions not seen before."""
+        lm_hash = landmarks.content_hash() if landmarks is not None and len(landmarks) else None
+        lib_hash = library.content_hash()
+        keys = [(lib_hash, lm_hash, ex.execution_id) for ex in executions]
+        todo = {k: ex for k, ex in zip(keys, executions, strict=True) if k not in self._parts}
+        if todo:
+            parts, warnings = featurize_executions(
+                list(todo.values()),
+                library,
+                workers=workers,
+                progress=progress,
+                landmarks=landmarks,
+            )
+            for k, part, ex in zip(todo, parts, todo.values(), strict=True):
+                self._parts[k] = part if part is not None else _skip_reason(warnings, ex)
+        out: list[TrainingData | None] = []
+        msgs: list[str] = []
+        for k in keys:
+            got = self._parts[k]
+            if isinstance(got, str):
+                msgs.append(got)
+                out.append(None)
+            else:
+                out.append(got)
+        return out, msgs
+
+
+def _skip_reason(warnings: list[str], execution: LabelledExecution) -> str:
+    prefix = f"execution {execution.execution_id} skipped"
+    return next((w for w in warnings if w.startswith(prefix)), f"{prefix}: unusable")
+
+
 # --------------------------------------------------------------------------- the search object
 
 
@@ -206,6 +261,7 @@ class QModelSearch:
     workers: int | None = None
     progress: bool = True
     on_warning: Callable[[str], None] = field(default=lambda _msg: None, repr=False)
+    feature_cache: FeatureCache | None = field(default=None, repr=False)
 
     def _check(self) -> None:
         for name in ("C", "D"):
@@ -235,7 +291,10 @@ class QModelSearch:
             seed=self.random_state,
         )
         t0 = time.perf_counter()
-        parts, warnings = featurize_executions(
+        featurize = (
+            featurize_executions if self.feature_cache is None else self.feature_cache.featurize
+        )
+        parts, warnings = featurize(
             executions,
             library,
             workers=self.workers,

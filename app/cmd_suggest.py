@@ -1,0 +1,122 @@
+"""`knotlab suggest`: which unlabelled training starts to label next (most informative first)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+from knotlab.app import defaults
+from knotlab.app.options import add_db_argument, fail
+from knotlab.core.selection.acquisition import RANK_BY, RankedState
+
+
+def format_suggestions(ranked: list[RankedState]) -> str:
+    """Rank, state, Q margin, disagreement and each policy's choice, one line per state."""
+    head = f"{'rank':>4}  {'start':<18} {'Q margin':>9} {'disagree':>8}  choices"
+    lines = [head, "-" * len(head)]
+    for r in ranked:
+        s = r.score
+        margin = f"{s.margin:.4f}" if math.isfinite(s.margin) else "inf"
+        choices = ", ".join(f"{k} {v}" for k, v in s.choices.items())
+        lines.append(f"{r.rank:>4}  {s.key:<18} {margin:>9} {s.disagreement:>8.2f}  {choices}")
+    return "\n".join(lines)
+
+
+def _clouds_from_store(url: str) -> dict:
+    from knotlab.labeling_db.store import open_store
+
+    with open_store(url, create=False, auto_upgrade=False) as store:
+        states = store.start_states_to_label()
+    clouds = {}
+    for s in states:
+        key = s.provenance.task_id or f"state:{s.state_id}"
+        clouds[key if key not in clouds else f"{key}#state:{s.state_id}"] = s.cloud_n3
+    return clouds
+
+
+def _run(args: argparse.Namespace) -> int:
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.errors import KnotlabError
+    from knotlab.core.selection.acquisition import (
+        rank_for_labelling,
+        score_clouds,
+        task_start_clouds,
+    )
+    from knotlab.core.selection.features import LibraryFeaturizer
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.labeling_db.errors import LabelingDbError
+
+    if args.db is not None and args.tasks_file is not None:
+        return fail("give --db or --tasks-file, not both")
+    if args.limit < 1:
+        return fail(f"--limit must be >= 1, got {args.limit}")
+    progress = not args.no_progress
+    try:
+        library = DemoLibrary.load(Path(args.library) if args.library else defaults.LIBRARY_PATH)
+        model = QModel.load(Path(args.model) if args.model else defaults.MODEL_PATH)
+        featurizer = LibraryFeaturizer.for_model(library, model)
+        if args.db is not None:
+            clouds = _clouds_from_store(args.db)
+            where = f"{args.db} (start states without a completed episode)"
+        else:
+            path = Path(args.tasks_file or defaults.task_set_path(args.level, "train"))
+            tasks = TaskSet.load(path)
+            if tasks.split != "train":
+                return fail(f"{path} is a {tasks.split!r} task set; suggest labels training starts")
+            clouds = task_start_clouds(list(tasks), featurizer, progress=progress)
+            where = str(path)
+        scores = score_clouds(clouds, featurizer, model, progress=progress)
+    except FileNotFoundError as exc:
+        return fail(f"file not found: {exc.filename or exc}")
+    except (KnotlabError, LabelingDbError) as exc:
+        return fail(exc)
+    ranked = rank_for_labelling(scores, by=args.by, seed=args.seed)[: args.limit]
+    if args.json:
+        rows = [
+            {
+                "rank": r.rank,
+                **dataclasses.asdict(r.score),
+                "margin": r.score.margin if math.isfinite(r.score.margin) else None,
+                "disagreement": r.score.disagreement,
+            }
+            for r in ranked
+        ]
+        print(json.dumps(rows))
+        return 0
+    print(f"{len(scores)} unlabelled starts from {where}; the {len(ranked)} to label first:")
+    print(format_suggestions(ranked))
+    if not scores:
+        print("nothing left to label", file=sys.stderr)
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `knotlab suggest` to the command line."""
+    p = subparsers.add_parser(
+        "suggest",
+        help="rank unlabelled training starts by how much a label would teach the model",
+        description=(
+            "Score every unlabelled training start by the Q margin between its two best demos "
+            "and by whether NN and greedy disagree there, and list the most informative first. "
+            "Starts come from the labelling database (--db: those without a completed episode) "
+            "or from a training task set (default static/tasks_<level>_train.npz)."
+        ),
+    )
+    add_db_argument(p)
+    p.add_argument("--tasks-file", default=None, help="training task set (instead of --db)")
+    p.add_argument("--level", choices=defaults.LEVELS, default="main")
+    p.add_argument("--model", default=None, help=f"QModel (default {defaults.MODEL_PATH})")
+    p.add_argument(
+        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
+    )
+    p.add_argument("--limit", type=int, default=20, help="how many to list (default 20)")
+    p.add_argument("--by", choices=RANK_BY, default="combined", help="ranking (default combined)")
+    p.add_argument("--seed", type=int, default=0, help="tie-break seed (default 0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the ranking as JSON")
+    p.set_defaults(func=_run)
