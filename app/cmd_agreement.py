@@ -7,7 +7,8 @@ import dataclasses
 import json
 import math
 
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import add_db_argument, db_url
+from knotlab.core.errors import InvalidInputError, KnotlabError
 from knotlab.core.selection.agreement import MATCHES, PairAgreement
 
 
@@ -49,7 +50,9 @@ def _run(args: argparse.Namespace) -> int:
         with open_store(db_url(args), create=False, auto_upgrade=False) as store:
             visits = store.state_visits()
     except LabelingDbError as exc:
-        return fail(exc)
+        if isinstance(exc, KnotlabError):
+            raise
+        raise InvalidInputError(str(exc)) from exc
     pairs = pairwise_agreement(visits, match=args.match)
     if args.json:
         print(json.dumps([dataclasses.asdict(p) for p in pairs], allow_nan=False, default=str))

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url, fail
+from knotlab.app.options import add_db_argument, db_url
 
 
 def _store_episode(args: argparse.Namespace, episode_id: int):
@@ -39,7 +39,7 @@ def _store_episode(args: argparse.Namespace, episode_id: int):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from knotlab.core.errors import KnotlabError
+    from knotlab.core.errors import InvalidInputError, KnotlabError
     from knotlab.core.experiments.playback import bench_episode, export_playback
     from knotlab.labeling_db.errors import LabelingDbError
 
@@ -49,12 +49,16 @@ def _run(args: argparse.Namespace) -> int:
             try:
                 episode_id = int(spec[3:])
             except ValueError:
-                return fail(f"EPISODE {spec!r}: expected db:EPISODE_ID with an integer id")
+                raise InvalidInputError(
+                    f"EPISODE {spec!r}: expected db:EPISODE_ID with an integer id"
+                ) from None
             episode, library = _store_episode(args, episode_id)
         else:
             parts = spec.rsplit(":", 2)
             if len(parts) != 3 or not all(parts):
-                return fail(f"EPISODE {spec!r}: expected RESULTS_DIR:POLICY:TASK_ID or db:ID")
+                raise InvalidInputError(
+                    f"EPISODE {spec!r}: expected RESULTS_DIR:POLICY:TASK_ID or db:ID"
+                )
             results_dir, policy, task_id = parts
             levels = [
                 defaults.task_set_path(lv, sp) for lv in defaults.LEVELS for sp in ("test", "train")
@@ -70,7 +74,9 @@ def _run(args: argparse.Namespace) -> int:
             episode, library, args.out, fps=args.fps, speed=args.speed, size=args.size
         )
     except (KnotlabError, LabelingDbError, LookupError, OSError) as exc:
-        return fail(exc)
+        if isinstance(exc, KnotlabError):
+            raise
+        raise InvalidInputError(str(exc)) from exc
     for w in replay.warnings:
         print(f"knotlab playback: warning: {w}", file=sys.stderr)
     size_kb = Path(out).stat().st_size / 1024

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, fail
+from knotlab.app.options import add_db_argument
 from knotlab.core.selection.acquisition import RANK_BY, RankedState
 
 
@@ -41,7 +41,7 @@ def _clouds_from_store(url: str) -> dict:
 def _run(args: argparse.Namespace) -> int:
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import TaskSet
-    from knotlab.core.errors import KnotlabError
+    from knotlab.core.errors import InvalidInputError, KnotlabError
     from knotlab.core.selection.acquisition import (
         rank_for_labelling,
         score_clouds,
@@ -52,9 +52,9 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.errors import LabelingDbError
 
     if args.db is not None and args.tasks_file is not None:
-        return fail("give --db or --tasks-file, not both")
+        raise InvalidInputError("give --db or --tasks-file, not both")
     if args.limit < 1:
-        return fail(f"--limit must be >= 1, got {args.limit}")
+        raise InvalidInputError(f"--limit must be >= 1, got {args.limit}")
     progress = not args.no_progress
     try:
         library = DemoLibrary.load(Path(args.library) if args.library else defaults.LIBRARY_PATH)
@@ -67,14 +67,18 @@ def _run(args: argparse.Namespace) -> int:
             path = Path(args.tasks_file or defaults.task_set_path(args.level, "train"))
             tasks = TaskSet.load(path)
             if tasks.split != "train":
-                return fail(f"{path} is a {tasks.split!r} task set; suggest labels training starts")
+                raise InvalidInputError(
+                    f"{path} is a {tasks.split!r} task set; suggest labels training starts"
+                )
             clouds = task_start_clouds(list(tasks), featurizer, progress=progress)
             where = str(path)
         scores = score_clouds(clouds, featurizer, model, progress=progress)
     except FileNotFoundError as exc:
-        return fail(f"file not found: {exc.filename or exc}")
+        raise InvalidInputError(f"file not found: {exc.filename or exc}") from None
     except (KnotlabError, LabelingDbError) as exc:
-        return fail(exc)
+        if isinstance(exc, KnotlabError):
+            raise
+        raise InvalidInputError(str(exc)) from exc
     ranked = rank_for_labelling(scores, by=args.by, seed=args.seed)[: args.limit]
     if args.json:
         rows = [

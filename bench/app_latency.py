@@ -40,7 +40,7 @@ def measure_new_state(tab, n: int) -> list[float]:
         new = tab.session.view().task_id
         tab.page.wait_for_function(
             "(t) => document.body.innerText.includes(t) && window.__viserSceneTree"
-            " && window.__viserSceneTree.getState()['/candidates/1/label']",
+            " && window.__viserSceneTree.getState()['/label/candidates/1/label']",
             arg=new,
             timeout=10000,
         )
@@ -57,7 +57,7 @@ def measure_try(tab, n: int) -> list[float]:
         tab.page.keyboard.press("Enter")
         tab.page.wait_for_function(
             "() => { const s = window.__viserSceneTree && window.__viserSceneTree.getState();"
-            " return s && (s['/grippers/left'] || s['/grippers/right']); }",
+            " return s && (s['/label/grippers/left'] || s['/label/grippers/right']); }",
             timeout=20000,
         )
         out.append(time.perf_counter() - t0)
@@ -105,7 +105,7 @@ def main() -> int:
                 tab = open_tab(browser, app, f"probe{i}")
                 tab.page.wait_for_function(
                     "() => window.__viserSceneTree &&"
-                    " window.__viserSceneTree.getState()['/candidates/1/label']",
+                    " window.__viserSceneTree.getState()['/label/candidates/1/label']",
                     timeout=20000,
                 )
                 ready.append(time.perf_counter() - t0)
