@@ -18,6 +18,7 @@ import viser
 from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
+from knotlab.app.web.playback_panel import PlaybackPanel, store_episode
 from knotlab.app.web.scene import SceneDrawer
 from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
 from knotlab.core.world.frames import FrameRecorder
@@ -64,6 +65,12 @@ class LabelTab:
                 current_nodes=lambda: None if self.session is None else self.session.nodes_k3,
                 start_nodes=app.start_nodes,
                 set_label_visible=self.drawer.set_label_visible,
+            )
+        with self.panels.tabs.add_tab("Playback", icon=viser.Icon.MOVIE):
+            self.playback = PlaybackPanel(
+                client,
+                lambda episode_id: store_episode(app.store, episode_id),
+                self.drawer.set_label_visible,
             )
         self.refresh_models()
         self.show_retrain()
@@ -249,6 +256,7 @@ class LabelTab:
         if self.session is not None:
             self.session.close()
         self.inspector.close()
+        self.playback.stop()
 
 
 def _trying(view):

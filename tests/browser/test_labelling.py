@@ -244,3 +244,30 @@ def test_inspect_shows_the_three_policies_plot_and_registration(tabs):
     page.locator("label", has_text="Show A's registration in 3D").click()
     wait_until(lambda: not _scene_has(page, "/inspect/warped"), 10, "registration hidden")
     assert tab.server_tab.drawer.label_root.visible is True
+
+
+def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root, tmp_path):
+    from PIL import Image
+
+    tab = tabs("ned")
+    page = tab.page
+    panel = tab.server_tab.playback
+    page.get_by_role("tab", name="Playback").click()
+    panel.source.value = str(project_root / "results" / "table1_main")
+    panel.policy.value = "la2x5"
+    panel.task.value = "main-test-0000"
+    page.get_by_role("button", name="Load and replay").click()
+    wait_until(lambda: panel.replay is not None, 120, "the replay")
+    assert panel.replay.knot and not panel.replay.warnings  # the recorded knot, reproduced
+    wait_until(lambda: panel.frame > 5, 30, "the timeline to move while playing")
+    assert _scene_has(page, "/playback/rope")
+    assert tab.server_tab.drawer.label_root.visible is False
+    tab.screenshot("playback")
+    with page.expect_download(timeout=120_000) as download:
+        page.get_by_role("button", name="Export GIF").click()
+    path = tmp_path / "knot.gif"
+    download.value.save_as(path)
+    with Image.open(path) as gif:
+        assert gif.format == "GIF" and gif.n_frames > 10
+    page.get_by_role("button", name="Back to the labelling view").click()
+    wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "labelling view back")

@@ -1,0 +1,241 @@
+"""The Playback tab: replay a Table I episode (a bench results directory) or a stored labelling
+episode as an animation, with a step timeline, play / pause / speed, the chosen demo, its score
+and the stage reached per step, and export to a GIF for slides. Draws under /playback.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import viser
+
+from knotlab.app import defaults
+from knotlab.app.web.geometry import tube_faces, tube_vertices
+from knotlab.core.demos.library import DemoLibrary
+from knotlab.core.experiments.playback import (
+    PlaybackEpisode,
+    Replay,
+    bench_episode,
+    execution_episode,
+    export_playback,
+    load_matching_library,
+    resimulate,
+)
+from knotlab.core.world.stages import Stage
+
+FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
+SPEEDS = ("1x", "2x", "4x", "8x")
+STORE = "labelling store (episode id)"
+
+
+def results_dirs(root: Path = defaults.RESULTS_DIR) -> list[str]:
+    """Bench results directories under results/ (those with a run.json)."""
+    if not root.is_dir():
+        return []
+    return sorted(str(p.parent) for p in root.glob("*/run.json"))
+
+
+class PlaybackPanel:
+    """One tab's playback: load, play, scrub and export an episode."""
+
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        store_executions: Callable[[int], tuple[PlaybackEpisode, DemoLibrary]],
+        set_label_visible: Callable[[bool], None],
+    ) -> None:
+        self.client = client
+        self._store_execution = store_executions
+        self._set_label_visible = set_label_visible
+        gui = client.gui
+        self.source = gui.add_dropdown("Source", (*results_dirs(), STORE))
+        self.policy = gui.add_text("Policy", "la2x5")
+        self.task = gui.add_text("Task or episode id", "main-test-0000")
+        self.load_button = gui.add_button("Load and replay", icon=viser.Icon.PLAYER_PLAY)
+        self.status = gui.add_markdown("Pick an episode of the last Table I run, then Load.")
+        self.timeline = gui.add_slider("Frame", 0, 1, 1, 0, disabled=True)
+        self.play_button = gui.add_button("Play / pause", disabled=True)
+        self.speed = gui.add_button_group("Speed", SPEEDS)
+        self.caption = gui.add_markdown("")
+        self.export_button = gui.add_button("Export GIF", disabled=True, icon=viser.Icon.DOWNLOAD)
+        self.back_button = gui.add_button("Back to the labelling view")
+        self.episode: PlaybackEpisode | None = None
+        self.library: DemoLibrary | None = None
+        self.replay: Replay | None = None
+        self._speed = 2.0
+        self._playing = threading.Event()
+        self._player: threading.Thread | None = None
+        self._updating = False
+        self.load_button.on_click(lambda _e: self.load())
+        self.play_button.on_click(lambda _e: self.toggle())
+        self.speed.on_click(lambda _e: self._set_speed(self.speed.value))
+        self.timeline.on_update(lambda _e: None if self._updating else self.show(self.frame))
+        self.export_button.on_click(lambda _e: self.export())
+        self.back_button.on_click(lambda _e: self.stop())
+
+    @property
+    def frame(self) -> int:
+        """The frame the timeline is at."""
+        return int(self.timeline.value)
+
+    def _set_speed(self, label: str) -> None:
+        self._speed = float(label.rstrip("x"))
+
+    # ------------------------------------------------------------------ loading
+    def load(self) -> None:
+        """Rebuild the episode and re-simulate it with its recorded choices."""
+        self._playing.clear()
+        self.status.content = "re-simulating the episode with its recorded choices..."
+        try:
+            source = self.source.value
+            if source == STORE:
+                self.episode, self.library = self._store_execution(int(self.task.value))
+            else:
+                self.episode, self.library = bench_episode(
+                    source,
+                    self.policy.value.strip(),
+                    self.task.value.strip(),
+                    library_paths=[defaults.LIBRARY_PATH],
+                    task_set_paths=[
+                        defaults.task_set_path(lv, sp)
+                        for lv in defaults.LEVELS
+                        for sp in ("test", "train")
+                    ],
+                )
+            t0 = time.perf_counter()
+            self.replay = resimulate(self.episode, self.library, dt=FRAME_DT)
+        except Exception as exc:  # any bad pick: one line in the panel
+            self.status.content = f"**cannot play**: {exc}"
+            return
+        r, episode = self.replay, self.episode
+        warn = "".join(f"  \n warning: {w}" for w in r.warnings)
+        self.status.content = (
+            f"**{episode.title}**: {len(episode.steps)} steps, "
+            f"{'knot tied' if r.knot else 'no knot'}; {len(r)} frames, re-simulated in "
+            f"{time.perf_counter() - t0:.1f} s{warn}"
+        )
+        self._updating = True
+        self.timeline.max = max(1, len(r) - 1)
+        self.timeline.value = 0  # type: ignore[misc]
+        self._updating = False
+        self.timeline.disabled = False
+        self.play_button.disabled = False
+        self.export_button.disabled = False
+        self._set_label_visible(False)
+        self.show(0)
+        self.toggle()
+
+    # ------------------------------------------------------------------ playing
+    def toggle(self) -> None:
+        """Play from the timeline's frame, or pause."""
+        if self._playing.is_set():
+            self._playing.clear()
+            return
+        if self.replay is None:
+            return
+        self._playing.set()
+        self._player = threading.Thread(target=self._play, name="playback", daemon=True)
+        self._player.start()
+
+    def _play(self) -> None:
+        replay = self.replay
+        assert replay is not None
+        i = self.frame
+        while self._playing.is_set() and i < len(replay) - 1:
+            i += 1
+            self._updating = True
+            self.timeline.value = i  # type: ignore[misc]
+            self._updating = False
+            self.show(i)
+            time.sleep(FRAME_DT / self._speed)
+        self._playing.clear()
+
+    def show(self, i: int) -> None:
+        """Draw frame i and its step's caption."""
+        replay, episode = self.replay, self.episode
+        if replay is None or episode is None or not len(replay):
+            return
+        i = int(np.clip(i, 0, len(replay) - 1))
+        nodes = replay.nodes_fk3[i]
+        scene = self.client.scene
+        with self.client.atomic():
+            scene.add_mesh_simple(
+                "/playback/rope",
+                tube_vertices(nodes, 0.01),
+                tube_faces(len(nodes), 12),
+                color=(196, 120, 60),
+            )
+            for g, name in enumerate(("left", "right")):
+                held = bool(replay.closed_fg[i, g])
+                p = replay.grippers_fg3[i, g]
+                scene.add_icosphere(
+                    f"/playback/{name}",
+                    radius=0.016 if held else 0.011,
+                    color=(0, 158, 115) if held else (60, 60, 60),
+                    position=(float(p[0]), float(p[1]), float(p[2])),
+                )
+        step = int(replay.step_f[i])
+        s = episode.steps[step]
+        score = "-" if s.score is None or not np.isfinite(s.score) else f"{s.score:.3f}"
+        stage = replay.stages[step] if step < len(replay.stages) else None
+        try:
+            stage_name = Stage(stage).name.lower() if stage is not None else "?"
+        except ValueError:
+            stage_name = str(stage)
+        self.caption.content = (
+            f"step **{step + 1}** of {len(episode.steps)} · demo `{s.demo_key}` · score {score}"
+            f" · stage reached: **{stage_name}**"
+        )
+
+    def export(self) -> None:
+        """Write the episode as a GIF and send it to the browser as a download."""
+        if self.episode is None or self.library is None:
+            return
+        self.status.content = "rendering the GIF..."
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "knot.gif"
+            try:
+                export_playback(self.episode, self.library, path, fps=15, speed=4.0, size=400)
+            except Exception as exc:
+                self.status.content = f"**export failed**: {exc}"
+                return
+            data = path.read_bytes()
+        self.client.send_file_download("knot.gif", data, save_immediately=True)
+        self.status.content = f"exported knot.gif ({len(data) / 1024:.0f} kB)"
+
+    def stop(self) -> None:
+        """Stop playing and show the labelling view again."""
+        self._playing.clear()
+        self.client.scene.remove_by_name("/playback")
+        self._set_label_visible(True)
+
+
+def store_episode(store, episode_id: int) -> tuple[PlaybackEpisode, DemoLibrary]:
+    """A stored labelling episode as a playback episode, with its library."""
+    info = store.episode(episode_id)
+    execution = next(
+        (
+            se.execution
+            for se in store.stored_executions(labeller=info.labeller)
+            if se.execution.execution_id == info.execution_id
+        ),
+        None,
+    )
+    if execution is None or not execution.steps:
+        raise LookupError(f"episode {episode_id} has no labelled steps to play")
+    episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}")
+    library = (
+        load_matching_library([defaults.LIBRARY_PATH], execution.library_hash or "")
+        if execution.library_hash
+        else None
+    )
+    if library is None:
+        from knotlab.core.demos.library import DemoLibrary
+
+        library = DemoLibrary.load(defaults.LIBRARY_PATH)
+    return episode, library
