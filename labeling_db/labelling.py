@@ -185,8 +185,13 @@ class LabellingStore(StoreBase):
         library_hash: str | None = None,
         metadata: Mapping[str, Any] | None = None,
         overlap: OverlapPolicy | None = None,
+        prefer: Sequence[int] = (),
     ) -> EpisodeInfo | None:
         """Start an episode on `state_id`, or claim the next unlabelled start state (None: none).
+
+        ``prefer`` lists start state ids in the order to claim them (a suggested labelling
+        order); the first of them still unclaimed is taken, in the same transaction as the
+        check, else the oldest unclaimed start.
 
         With an ``overlap`` policy, a start another labeller already holds (its one live
         episode) is claimable too when the policy offers it to a second labeller: the claim is
@@ -206,14 +211,18 @@ class LabellingStore(StoreBase):
             if state_id is None:
                 if s.get_bind().dialect.name == "postgresql":
                     s.execute(select(func.pg_advisory_xact_lock(_PG_CLAIM_LOCK)))
-                sid = s.scalars(
-                    select(RopeState.id)
-                    .where(
-                        RopeState.id.in_(_unlabelled_start_states().with_only_columns(RopeState.id))
+                free = RopeState.id.in_(_unlabelled_start_states().with_only_columns(RopeState.id))
+                sid = None
+                if prefer:
+                    wanted = [int(i) for i in prefer]
+                    found = set(
+                        s.scalars(select(RopeState.id).where(free, RopeState.id.in_(wanted)))
                     )
-                    .order_by(RopeState.id)
-                    .limit(1)
-                ).first()
+                    sid = next((i for i in wanted if i in found), None)
+                if sid is None:
+                    sid = s.scalars(
+                        select(RopeState.id).where(free).order_by(RopeState.id).limit(1)
+                    ).first()
                 if overlap is not None and overlap.overlap > 0:
                     second = _second_labeller_start(s, lid, overlap)
                     if second is not None and (sid is None or second < sid):

@@ -30,6 +30,8 @@ class Actions:
     retrain: Callable[[], None]
     use_model: Callable[[str | None], None]  # a model version; None: nearest neighbour
     toggle_warped: Callable[[bool], None]
+    suggest: Callable[[], None]
+    follow: Callable[[bool], None]
 
 
 def _bind(fn: Callable[[int], None], arg: int) -> Callable[[], None]:
@@ -64,6 +66,9 @@ class LabelPanels:
                     for r in range(1, MAX_LISTED + 1)
                 ]
                 self.show_warped = gui.add_checkbox("Show warped demo cloud", False)
+                self.follow_suggested = gui.add_checkbox(
+                    "Next rope: the suggested one", False, hint="Model tab: Suggest"
+                )
             with gui.add_folder("Actions"):
                 self.try_button = gui.add_button("Try (Enter)", color="blue", icon=icon.PLAYER_PLAY)
                 self.accept_button = gui.add_button("Accept (Y)", color="green", icon=icon.CHECK)
@@ -83,6 +88,9 @@ class LabelPanels:
             # its options change (after a retrain), which must not switch models by itself.
             self.use_model_button = gui.add_button("Rank with this model")
             self.model_table = gui.add_markdown("")
+            gui.add_markdown("**What to label next**")
+            self.suggest_button = gui.add_button("Suggest what to label next")
+            self.suggest_status = gui.add_markdown("")
         self._model_options: dict[str, str | None] = {}
         self._sent: dict[tuple[int, str], object] = {}
         self._wire()
@@ -98,6 +106,8 @@ class LabelPanels:
         self.resample_button.on_click(lambda _e: a.resample())
         self.undo_button.on_click(lambda _e: a.undo())
         self.retrain_button.on_click(lambda _e: a.retrain())
+        self.suggest_button.on_click(lambda _e: a.suggest())
+        self.follow_suggested.on_update(lambda _e: a.follow(bool(self.follow_suggested.value)))
         self.show_warped.on_update(lambda _e: a.toggle_warped(bool(self.show_warped.value)))
 
         @self.use_model_button.on_click

@@ -48,6 +48,10 @@ class LabelApp:
         self._retrain_text = ""
         self._retrain_fraction = 0.0
         self._tabs: dict[int, LabelTab] = {}
+        self.suggested: list[int] = []  # start state ids, most informative first
+        self.suggest_text = ""
+        self._suggest_lock = threading.Lock()
+        self._suggesting = False
         self._tabs_lock = threading.Lock()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when quiet
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -182,6 +186,54 @@ class LabelApp:
     def _broadcast_retrain(self) -> None:
         for tab in self.tabs():
             tab.show_retrain()
+
+    # ------------------------------------------------------------------ suggestions
+    def start_suggest(self) -> bool:
+        """Rank unlabelled starts by how much a label would teach the model, in the background."""
+        ranking = self.resources.current
+        with self._suggest_lock:
+            if self._suggesting or ranking.model is None:
+                return False
+            self._suggesting = True
+
+        def work() -> None:
+            from knotlab.core.selection.acquisition import rank_for_labelling, score_scan
+
+            try:
+                states = self.store.start_states_to_label()
+                keys = self.resources.library.keys
+                scores = []
+                for i, st in enumerate(states):
+                    phi, scan = ranking.featurizer.features(st.cloud_n3)
+                    assert ranking.model is not None
+                    scores.append(score_scan(f"{st.state_id}", scan, phi, ranking.model, keys))
+                    if i % 10 == 0:
+                        self._suggest_progress(f"scoring {i + 1} of {len(states)} starts")
+                order = rank_for_labelling(scores, by="combined", seed=0)
+                self.suggested = [int(r.score.key) for r in order]
+                by_id = {st.state_id: st for st in states}
+                top = [
+                    f"{r.rank}. `{by_id[int(r.score.key)].provenance.task_id}` "
+                    f"(Q margin {r.score.margin:.3f}, NN/greedy disagree: "
+                    f"{'yes' if r.score.disagreement else 'no'})"
+                    for r in order[:5]
+                ]
+                text = f"{len(order)} starts ranked by {ranking.label}; first:  \n" + "  \n".join(
+                    top
+                )
+            except Exception as exc:
+                text = f"suggest failed: {type(exc).__name__}: {exc}"
+            with self._suggest_lock:
+                self._suggesting = False
+            self._suggest_progress(text)
+
+        threading.Thread(target=work, name="suggest", daemon=True).start()
+        return True
+
+    def _suggest_progress(self, text: str) -> None:
+        self.suggest_text = text
+        for tab in self.tabs():
+            tab.show_suggest(text, self._suggesting)
 
     def stop(self) -> None:
         """Stop serving: close every tab (no half label), stop a retrain, stop viser."""

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -143,6 +143,7 @@ class LabelSession:
         self.world = world if world is not None else RopeWorld()
         self._own_world = world is None
         self._simulate = simulate  # None: simulate tries in this process
+        self.prefer: Callable[[], Sequence[int]] | None = None  # a suggested claiming order
         self._lock = threading.RLock()
         self.phase = Phase.CHOOSING
         self.episode: EpisodeInfo | None = None
@@ -205,7 +206,10 @@ class LabelSession:
 
     def _claim_next(self) -> SessionView:
         info = self.store.start_episode(
-            self.labeller, library_hash=self.res.library_hash, source="human"
+            self.labeller,
+            library_hash=self.res.library_hash,
+            source="human",
+            prefer=self.prefer() if self.prefer is not None else (),
         )
         if info is None:
             self.phase = Phase.NO_STARTS

@@ -39,6 +39,7 @@ class LabelTab:
         self.client = client
         self.session: LabelSession | None = None
         self.closed = False
+        self._follow = False
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
         self.drawer = SceneDrawer(client, on_pick=self.select)
@@ -55,6 +56,8 @@ class LabelTab:
                 retrain=self.retrain,
                 use_model=self.use_model,
                 toggle_warped=lambda _on: self._redraw_warped(),
+                suggest=self.suggest,
+                follow=self.follow,
             ),
         )
         with self.panels.tabs.add_tab("Inspect", icon=viser.Icon.ZOOM_QUESTION):
@@ -110,6 +113,8 @@ class LabelTab:
             session.close()
             return
         self.session = session
+        if self._follow:
+            session.prefer = lambda: self.app.suggested
         self._draw(look=True)
         self.ready.set()
         log.info("client %s: %s labels %s", self.client.client_id, name, view.task_id)
@@ -226,6 +231,22 @@ class LabelTab:
         """Start a retrain (refused with a message while one runs)."""
         if not self.app.start_retrain():
             self._notify("a retrain is already running", "wait for it to finish", "yellow")
+
+    def suggest(self) -> None:
+        """Rank the unlabelled starts for labelling (refused while running or without a model)."""
+        if not self.app.start_suggest():
+            self._notify("cannot suggest now", "one is running, or there is no model", "yellow")
+
+    def follow(self, on: bool) -> None:
+        """Claim the next ropes in the suggested order (or the oldest first)."""
+        self._follow = on
+        if self.session is not None:
+            self.session.prefer = (lambda: self.app.suggested) if on else None
+
+    def show_suggest(self, text: str, running: bool) -> None:
+        """Redraw the suggestion status."""
+        self.panels.suggest_status.content = text
+        self.panels.suggest_button.disabled = running
 
     def use_model(self, version: str | None) -> None:
         """Rank this and every tab's next states with model ``version``."""

@@ -172,3 +172,18 @@ def test_two_sessions_claim_different_starts(store, resources):
 def test_an_empty_name_is_refused(store, resources):
     with pytest.raises(SessionError, match="name"):
         LabelSession(store, resources, "  ")
+
+
+def test_a_suggested_order_is_followed_and_never_claims_a_held_start(store, resources):
+    a = _session(store, resources, "ann")  # holds the oldest start
+    held = a.episode.start_state_id
+    ids = sorted(st.state_id for st in store.start_states_to_label())
+    order = [held, ids[-1], ids[-2]]
+    b = LabelSession(store, resources, "bob")
+    b.prefer = lambda: order
+    b.start()
+    assert b.episode.start_state_id == ids[-1]  # the first suggested start nobody holds
+    c = LabelSession(store, resources, "cat")
+    c.prefer = lambda: order
+    c.start()
+    assert c.episode.start_state_id == ids[-2]
