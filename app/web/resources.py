@@ -16,11 +16,15 @@ from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import TaskSet
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.jsonsafe import json_safe
+from knotlab.core.registration import SCAN
+from knotlab.core.registration.library_scan import LibraryRegistrar
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.labeling_db.records import StateProvenance
 from knotlab.labeling_db.store import Store
+
+SCAN_THREADS = 2  # threads of one interactive library scan
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,7 +92,10 @@ class AppResources:
         self.tasks = tasks
         self.top_k = top_k
         self.transferer = DemoTransferer(library)
-        self._nn_featurizer = LibraryFeaturizer(library)
+        # An expert waits on each scan: its chunks run on two threads (the kernel releases the
+        # GIL; chunks are independent, so the costs are the same as on one).
+        self.registrar = LibraryRegistrar(SCAN, n_workers=SCAN_THREADS)
+        self._nn_featurizer = LibraryFeaturizer(library, registrar=self.registrar)
         self._lock = threading.Lock()
         self._models: dict[str, RankingModel] = {}
         self._current: RankingModel = RankingModel(
@@ -98,7 +105,7 @@ class AppResources:
     # --- models
     def add_model(self, model: QModel, source: str) -> RankingModel:
         """Make a model available (refused when it does not fit the library); returns it."""
-        featurizer = LibraryFeaturizer.for_model(self.library, model)
+        featurizer = LibraryFeaturizer.for_model(self.library, model, registrar=self.registrar)
         ranking = RankingModel(model.content_hash(), source, model, featurizer)
         with self._lock:
             self._models.setdefault(ranking.version or "", ranking)

@@ -165,10 +165,13 @@ class LibraryFeaturizer:
         )
 
     @classmethod
-    def for_model(cls, library: DemoLibrary, model) -> LibraryFeaturizer:
+    def for_model(
+        cls, library: DemoLibrary, model, *, registrar: LibraryRegistrar | None = None
+    ) -> LibraryFeaturizer:
         """The featurizer a QModel was trained with (its landmarks), checked against its spec."""
         featurizer = cls(
             library,
+            registrar=registrar,
             phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
             landmarks=getattr(model, "landmarks", None),
         )
