@@ -106,6 +106,9 @@ class InspectPanel:
         except Exception as exc:
             self.choices.content = f"**cannot inspect**: {exc}"
             return
+        self._after_load(view)
+
+    def _after_load(self, view: InspectView) -> None:
         self.search_button.disabled = view.choices.greedy is None
         self.search_bar.visible = False
         self.tree.content = ""
@@ -119,6 +122,18 @@ class InspectPanel:
         self.show(view)
         self.show_candidates()
         self.draw_3d()
+
+    def inspect_nodes(self, nodes_k3: np.ndarray, label: str) -> None:
+        """Explain the decision on a given rope (e.g. a step of a played-back episode)."""
+        try:
+            view = self.inspector.load(nodes_k3, label)
+        except Exception as exc:
+            self.choices.content = f"**cannot inspect**: {exc}"
+            return
+        self._after_load(view)
+        self.client.add_notification(
+            "opened in Inspect", label, auto_close_seconds=4.0, color="blue"
+        )
 
     def run_search(self) -> None:
         """Start the lookahead search (progress and tree update as it runs)."""

@@ -48,7 +48,9 @@ class PlaybackPanel:
         client: viser.ClientHandle,
         store_executions: Callable[[int], tuple[PlaybackEpisode, DemoLibrary]],
         set_label_visible: Callable[[bool], None],
+        inspect: Callable[[np.ndarray, str], None] | None = None,
     ) -> None:
+        self._inspect = inspect
         self.client = client
         self._store_execution = store_executions
         self._set_label_visible = set_label_visible
@@ -63,6 +65,9 @@ class PlaybackPanel:
         self.speed = gui.add_button_group("Speed", SPEEDS)
         self.caption = gui.add_markdown("")
         self.export_button = gui.add_button("Export GIF", disabled=True, icon=viser.Icon.DOWNLOAD)
+        self.inspect_button = gui.add_button(
+            "Inspect this step", disabled=True, hint="what NN, greedy and lookahead would choose"
+        )
         self.back_button = gui.add_button("Back to the labelling view")
         self.episode: PlaybackEpisode | None = None
         self.library: DemoLibrary | None = None
@@ -77,6 +82,7 @@ class PlaybackPanel:
         self.timeline.on_update(lambda _e: None if self._updating else self.show(self.frame))
         self.export_button.on_click(lambda _e: self.export())
         self.back_button.on_click(lambda _e: self.stop())
+        self.inspect_button.on_click(lambda _e: self.inspect_step())
 
     @property
     def frame(self) -> int:
@@ -126,6 +132,7 @@ class PlaybackPanel:
         self.timeline.disabled = False
         self.play_button.disabled = False
         self.export_button.disabled = False
+        self.inspect_button.disabled = self._inspect is None
         self._set_label_visible(False)
         self.show(0)
         self.toggle()
@@ -191,6 +198,16 @@ class PlaybackPanel:
             f"step **{step + 1}** of {len(episode.steps)} · demo `{s.demo_key}` · score {score}"
             f" · stage reached: **{stage_name}**"
         )
+
+    def inspect_step(self) -> None:
+        """Open the rope as it was before the timeline's step in the Inspect tab."""
+        replay, episode = self.replay, self.episode
+        if replay is None or episode is None or self._inspect is None:
+            return
+        self._playing.clear()
+        step = int(replay.step_f[self.frame])
+        first = int(np.flatnonzero(replay.step_f == step)[0])  # the rope before the step
+        self._inspect(replay.nodes_fk3[first], f"{episode.title}, before step {step + 1}")
 
     def export(self) -> None:
         """Write the episode as a GIF and send it to the browser as a download."""

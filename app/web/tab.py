@@ -74,6 +74,7 @@ class LabelTab:
                 client,
                 lambda episode_id: store_episode(app.store, episode_id),
                 self.drawer.set_label_visible,
+                inspect=self.inspect.inspect_nodes,
             )
         self.refresh_models()
         self.show_retrain()

@@ -269,5 +269,12 @@ def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root
     download.value.save_as(path)
     with Image.open(path) as gif:
         assert gif.format == "GIF" and gif.n_frames > 10
+    page.get_by_role("button", name="Inspect this step").click()  # why was this demo chosen?
+    wait_until(
+        lambda: (v := tab.server_tab.inspector.view) is not None and "before step" in v.label,
+        30,
+        "the played step opened in Inspect",
+    )
+    assert tab.server_tab.inspector.view.choices.greedy is not None
     page.get_by_role("button", name="Back to the labelling view").click()
     wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "labelling view back")
