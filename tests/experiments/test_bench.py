@@ -182,6 +182,7 @@ def test_bench_writes_results_table_and_chart(first_run, files):
     assert res["model_hash"] and res["task_set_hash"]
     assert set(res["packages"]) >= {"numpy", "scipy", "pybullet", "cvxpy", "knotlab"}
     assert res["machine"]["cpu_count"] >= 1
+    assert isinstance(res["machine"]["blas"], list)  # which BLAS kernels made these numbers
     assert res["arguments"]["tasks"] == N_TASKS and res["arguments"]["max_steps"] == 1
     assert set(res["seeds"]["episode_seeds"]) == {"mini-test-0000", "mini-test-0001"}
     for policy in ("nn", "greedy", "oracle"):
