@@ -124,3 +124,18 @@ def test_a_failed_job_ends_the_run_without_waiting_for_the_others():
         map_processes(_fail_fast, [120.0, 0.0, 120.0], workers=2, progress=False)
     assert time.monotonic() - t0 < 60  # spawning two workers, not the 120 s jobs
     assert pool_workers(os.getpid()) - before == set()
+
+
+def test_sigterm_unwinds_as_an_exception_and_the_old_handler_comes_back():
+    from knotlab.app.cli import Terminated, sigterm_unwinds
+
+    before = signal.getsignal(signal.SIGTERM)
+    unwound = []
+    with pytest.raises(Terminated), sigterm_unwinds():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises before this ends
+        finally:
+            unwound.append(True)  # finally blocks run: files close, pools end
+    assert unwound == [True]
+    assert signal.getsignal(signal.SIGTERM) is before
