@@ -4,6 +4,9 @@ Errors are reported here, once, for every command: one line ``knotlab <command>:
 stderr, exit code 2 when the input was at fault (bad arguments, missing or corrupt files, bad
 database URLs) and 1 when a run on good input failed. ``--debug`` or ``KNOTLAB_DEBUG=1`` shows the
 traceback instead.
+
+SIGTERM unwinds a command like Ctrl-C does (files close, worker pools end their workers, a bench
+keeps every whole outcome line) and exits with 143, the shell's code for death by SIGTERM.
 """
 
 from __future__ import annotations
@@ -11,7 +14,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
 from typing import NoReturn
 
 # Each module exposes `register(subparsers)` and sets `func` on its parsers.
@@ -32,6 +40,31 @@ COMMAND_MODULES: tuple[str, ...] = (
 DEBUG_ENV = "KNOTLAB_DEBUG"
 # OS errors on a path the user named: the input is at fault, not the run.
 _BAD_PATH_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError)
+TERMINATED_EXIT_CODE = 128 + signal.SIGTERM
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived (unwinding the command that was running)."""
+
+    # A BaseException, like KeyboardInterrupt: no `except Exception` that keeps a long run going
+    # past one bad episode may swallow it.
+
+
+def _raise_terminated(signum: int, frame: FrameType | None) -> NoReturn:
+    raise Terminated(signum)
+
+
+@contextmanager
+def sigterm_unwinds() -> Iterator[None]:
+    """While inside, SIGTERM raises :class:`Terminated` in the main thread (restored after)."""
+    if threading.current_thread() is not threading.main_thread():  # only it may set handlers
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -119,7 +152,11 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, a usage error: argparse already printed
         return exc.code if isinstance(exc.code, int) else 2
     try:
-        return int(args.func(args) or 0)
+        with sigterm_unwinds():
+            return int(args.func(args) or 0)
+    except Terminated:
+        print(f"{command_name(args)}: terminated (SIGTERM)", file=sys.stderr)
+        return TERMINATED_EXIT_CODE
     except KeyboardInterrupt:  # outputs are atomic: an interrupted command wrote nothing half-way
         print(f"{command_name(args)}: interrupted", file=sys.stderr)
         return 130

@@ -1,4 +1,4 @@
-"""Where a measurement was taken: CPU model, usable cores, load, Python and platform."""
+"""Where a measurement was taken: CPU model, usable cores, load, BLAS kernels, Python, platform."""
 
 from __future__ import annotations
 
@@ -26,8 +26,24 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def blas_kernels() -> list[str]:
+    """Each loaded BLAS library and the kernel it picked for this CPU: 'openblas 0.3.30 Haswell'."""
+    # OpenBLAS chooses its kernels per CPU at load time (OPENBLAS_CORETYPE overrides); results
+    # can differ in the last bits between kernels, so a results file records which ran.
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return []
+    return [
+        f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')} "
+        f"({Path(i.get('filepath') or '?').name})"
+        for i in threadpool_info()
+        if i.get("user_api") == "blas"
+    ]
+
+
 def machine_info() -> dict:
-    """CPU model, cores, 1-minute load average, Python and platform, as a JSON-able dict."""
+    """CPU model, cores, load average, BLAS kernels, Python and platform, as a JSON-able dict."""
     try:
         load = round(os.getloadavg()[0], 2)
     except OSError:
@@ -37,6 +53,7 @@ def machine_info() -> dict:
         "cpu_count": os.cpu_count(),
         "usable_cores": usable_cores(),
         "load_average_1m": load,
+        "blas": blas_kernels(),
         "python": platform.python_version(),
         "platform": platform.platform(),
     }

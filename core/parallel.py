@@ -2,6 +2,10 @@
 
 We parallelise over processes (one simulator per worker), never inside BLAS: each worker pins
 its BLAS/OpenMP pools to one thread so two workers on two cores do not oversubscribe them.
+
+Workers never outlive the run: each dies with the parent process (`knotlab.core.lifeline`), and
+a run that ends early (an error, Ctrl-C, SIGTERM turned into an exception by the command line, a
+consumer that stops iterating) terminates its workers instead of waiting for their jobs.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Generic, TypeVar
 
 from tqdm import tqdm
+
+from knotlab.core.lifeline import die_with_parent, end_processes
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -41,7 +47,8 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _init_worker(initializer: Callable[[], None] | None) -> None:
+def _init_worker(initializer: Callable[[], None] | None, parent_pid: int) -> None:
+    die_with_parent(parent_pid)
     single_thread_blas()
     if initializer is not None:
         initializer()
@@ -72,9 +79,10 @@ def imap_processes(
                 yield i, result
             return
         ctx = mp.get_context("spawn")  # fork + pybullet/BLAS threads is unsafe
-        with ProcessPoolExecutor(
-            workers, mp_context=ctx, initializer=_init_worker, initargs=(initializer,)
-        ) as pool:
+        pool = ProcessPoolExecutor(
+            workers, mp_context=ctx, initializer=_init_worker, initargs=(initializer, os.getpid())
+        )
+        try:
             pending = {pool.submit(fn, item): i for i, item in enumerate(items)}
             while pending:
                 done, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -83,8 +91,20 @@ def imap_processes(
                     result = fut.result()
                     bar.update(1)
                     yield i, result
+        except BaseException:  # nobody will read the remaining results: stop computing them
+            _abandon(pool)
+            raise
+        pool.shutdown(wait=True)
     finally:
         bar.close()
+
+
+def _abandon(pool: ProcessPoolExecutor) -> None:
+    """Cancel the queued jobs and end the workers now (SIGTERM, then SIGKILL after a grace)."""
+    # No public handle on the workers before Python 3.14 (terminate_workers); read the dict.
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    end_processes(processes)
 
 
 def map_processes(fn: Callable[[T], R], items: Iterable[T], **kwargs) -> list[R]:

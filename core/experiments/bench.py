@@ -6,10 +6,13 @@ model and policies once (:class:`BenchWorker`) and reuses them for every job it 
 
 Resumability: every finished episode is appended to ``out/outcomes.jsonl`` (one JSON line per
 (policy, task), flushed and fsynced), and ``out/run.json`` keeps the identity of the run (library,
-task set, model, seed, observation noise, steps). A rerun with the same ``out`` skips the
-(policy, task) pairs already there and refuses to mix results if the identity differs. More tasks
-or other policies may be added to an existing run; the model hash is only pinned once a learned
-policy has run.
+task set, model, seed, observation noise, steps). Each outcome line carries that identity too
+(under ``"run"``; the model hash only on lines of learned policies), so outcomes whose run.json was
+lost can still be checked. A rerun with the same ``out`` skips the (policy, task) pairs already
+there and refuses to mix results if the identity differs, or if it cannot tell (outcome lines
+without an identity and no run.json). More tasks or other policies may be added to an existing
+run; the model hash is only pinned once a learned policy has run. A model and a library that do
+not belong together are refused before anything is written.
 
 Success rates carry Wilson score 95 % intervals:
     centre = (k + z^2/2) / (n + z^2),  half = z sqrt(k (n - k) / n + z^2 / 4) / (n + z^2).
@@ -50,6 +53,7 @@ RESULTS_FORMAT = "knotlab-bench-results"
 RESULTS_VERSION = 1
 OUTCOMES_FILE = "outcomes.jsonl"
 RUN_FILE = "run.json"
+LINE_IDENTITY_KEY = "run"  # the key under which each outcome line records its run's identity
 RESULTS_FILE = "results.json"
 CHART_FILE = "table1.png"
 Z_95 = 1.959963984540054
@@ -105,10 +109,9 @@ class RunIdentity:
     max_steps: int
     model_hash: str | None = None  # None until a learned policy ran
 
-    def merged(self, stored: RunIdentity | None) -> RunIdentity:
-        """This identity checked against ``stored`` (raises BenchMismatchError on a difference)."""
-        if stored is None:
-            return self
+    def differences(self, stored: RunIdentity) -> list[str]:
+        """'name: stored X, now Y' for every field that differs (a model hash not yet pinned on
+        either side does not)."""
         diffs = [
             f"{name}: stored {getattr(stored, name)!r}, now {getattr(self, name)!r}"
             for name in ("library_hash", "task_set_hash", "seed", "noise", "max_steps")
@@ -120,6 +123,13 @@ class RunIdentity:
             and stored.model_hash != self.model_hash
         ):
             diffs.append(f"model_hash: stored {stored.model_hash!r}, now {self.model_hash!r}")
+        return diffs
+
+    def merged(self, stored: RunIdentity | None) -> RunIdentity:
+        """This identity checked against ``stored`` (raises BenchMismatchError on a difference)."""
+        if stored is None:
+            return self
+        diffs = self.differences(stored)
         if diffs:
             raise BenchMismatchError(
                 "the output directory holds results made with different arguments ("
@@ -137,6 +147,71 @@ def _read_identity(path: Path) -> RunIdentity | None:
         return RunIdentity(**data["identity"])
     except (json.JSONDecodeError, KeyError, TypeError) as exc:
         raise BenchMismatchError(f"{path}: unreadable run identity ({exc})") from exc
+
+
+def line_identity(identity: RunIdentity, policy: str) -> dict:
+    """The run identity an outcome line records (its model only where ``policy`` uses one)."""
+    return {**asdict(identity), "model_hash": identity.model_hash if needs_model(policy) else None}
+
+
+def _line_identity_of(made: object, where: Path) -> RunIdentity:
+    try:
+        return RunIdentity(**made)  # type: ignore[arg-type]
+    except TypeError as exc:  # not a dict, or other fields
+        raise BenchMismatchError(f"{where}: unreadable run identity in a line ({exc})") from exc
+
+
+def identity_of_lines(finished: dict[tuple[str, str], dict], where: Path) -> RunIdentity | None:
+    """The one run identity the outcome lines record; None when there are no lines.
+
+    Raises BenchMismatchError when a line records none (written before lines carried it) or when
+    lines record different identities (outcomes of two runs in one file).
+    """
+    if not finished:
+        return None
+    found: set[RunIdentity] = set()
+    models: set[str] = set()
+    for (policy, task_id), rec in finished.items():
+        made = rec.get(LINE_IDENTITY_KEY)
+        if not isinstance(made, dict):
+            raise BenchMismatchError(
+                f"{where}: the outcome of {policy} on {task_id} does not record the run that made "
+                f"it and there is no {RUN_FILE} beside it, so it cannot be checked against this "
+                "run; use a new --out directory"
+            )
+        line = _line_identity_of(made, where)
+        if line.model_hash is not None:
+            models.add(line.model_hash)
+        found.add(RunIdentity(**{**asdict(line), "model_hash": None}))
+    if len(found) > 1 or len(models) > 1:
+        raise BenchMismatchError(
+            f"{where}: holds the outcomes of {max(len(found), len(models))} different runs; "
+            "use a new --out directory"
+        )
+    return RunIdentity(**{**asdict(found.pop()), "model_hash": next(iter(models), None)})
+
+
+def stored_identity(out: Path, finished: dict[tuple[str, str], dict]) -> RunIdentity | None:
+    """What made the results in ``out``: run.json, checked against the outcome lines' identity."""
+    from_file = _read_identity(out / RUN_FILE)
+    if from_file is None:
+        return identity_of_lines(finished, out / OUTCOMES_FILE)
+    for (policy, task_id), rec in finished.items():
+        made = rec.get(LINE_IDENTITY_KEY)
+        if made is None:  # a line from before lines carried the identity: run.json vouches
+            continue
+        made_by = _line_identity_of(made, out / OUTCOMES_FILE)
+        diffs = made_by.differences(RunIdentity(**line_identity(from_file, policy)))
+        if diffs:
+            raise BenchMismatchError(
+                f"{out / OUTCOMES_FILE}: the outcome of {policy} on {task_id} was made by another "
+                f"run than {out / RUN_FILE} records ({'; '.join(diffs)}); use a new --out directory"
+            )
+    return from_file
+
+
+def _without_identity(rec: dict) -> dict:
+    return {k: v for k, v in rec.items() if k != LINE_IDENTITY_KEY}
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
@@ -598,9 +673,16 @@ def run_bench(
             f"the model was trained on '{model_obs}' observations, this library's are "
             f"'{observation.value}': use a library and model made with the same observation model"
         )
+    if learned and model is not None:
+        from knotlab.core.selection.features import LibraryFeaturizer
+
+        # Every worker builds this featurizer; a mismatch found there would surface as a broken
+        # pool after run.json was written. Found here, nothing is.
+        LibraryFeaturizer.for_model(library, model)
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    outcome_log = OutcomeLog(out / OUTCOMES_FILE)
+    finished = outcome_log.load()
     identity = RunIdentity(
         lib_hash,
         task_set.content_hash(),
@@ -608,12 +690,11 @@ def run_bench(
         float(noise),
         int(max_steps),
         model.content_hash() if learned and model is not None else None,
-    ).merged(_read_identity(out / RUN_FILE))
+    ).merged(stored_identity(out, finished))
+    out.mkdir(parents=True, exist_ok=True)
     _write_json_atomic(out / RUN_FILE, {"identity": asdict(identity)})
 
     tasks = list(task_set)[:n_tasks]
-    outcome_log = OutcomeLog(out / OUTCOMES_FILE)
-    finished = outcome_log.load()
     jobs = plan_jobs(
         tasks, policies, finished, seed=seed, max_steps=max_steps, noise=noise, first=first
     )
@@ -626,6 +707,7 @@ def run_bench(
 
             def on_result(rec: dict) -> None:
                 nonlocal ran
+                rec = {**rec, LINE_IDENTITY_KEY: line_identity(identity, rec["policy"])}
                 OutcomeLog.append(fh, rec)
                 finished[(rec["policy"], rec["task_id"])] = rec
                 ran += 1
@@ -638,7 +720,7 @@ def run_bench(
     outcomes: dict[str, list[dict]] = {p: [] for p in policies}
     for _, t, p in wanted_pairs(tasks, policies, first):
         if (p, t.task_id) in finished:
-            outcomes[p].append(finished[(p, t.task_id)])
+            outcomes[p].append(_without_identity(finished[(p, t.task_id)]))
     rows = [summarize(p, outcomes[p]) for p in policies]
     common_rows = None
     if len({r["n"] for r in rows}) > 1:

@@ -182,6 +182,7 @@ def test_bench_writes_results_table_and_chart(first_run, files):
     assert res["model_hash"] and res["task_set_hash"]
     assert set(res["packages"]) >= {"numpy", "scipy", "pybullet", "cvxpy", "knotlab"}
     assert res["machine"]["cpu_count"] >= 1
+    assert isinstance(res["machine"]["blas"], list)  # which BLAS kernels made these numbers
     assert res["arguments"]["tasks"] == N_TASKS and res["arguments"]["max_steps"] == 1
     assert set(res["seeds"]["episode_seeds"]) == {"mini-test-0000", "mini-test-0001"}
     for policy in ("nn", "greedy", "oracle"):
@@ -380,3 +381,110 @@ def test_a_run_whose_episodes_errored_is_not_a_result(files, tmp_path, capsys, m
     assert recs and all(r["failure_kind"] == "error" for r in recs)
     assert "wrong scale or units" in recs[0]["error"]
     assert rc == 1 and "not a result" in captured.err
+
+
+# ---------------------------------------------------------------------------- run identity on disk
+
+
+def _rewrite_lines(path: Path, edit) -> None:
+    """Apply ``edit`` to every outcome record of ``path`` and write them back, one per line."""
+    recs = [json.loads(line) for line in path.read_text().splitlines()]
+    path.write_text("".join(json.dumps(edit(r)) + "\n" for r in recs))
+
+
+def _other_model(files, tmp_path) -> Path:
+    """The test model with another bias: the same features, another content hash."""
+    import dataclasses
+
+    from knotlab.core.selection.qmodel import QModel
+
+    model = QModel.load(files["model"])
+    return dataclasses.replace(model, bias=model.bias + 1.0).save(tmp_path / "other.npz")
+
+
+def test_every_outcome_line_records_the_run_that_made_it(first_run):
+    out = first_run["out"]
+    identity = json.loads((out / "run.json").read_text())["identity"]
+    for line in (out / "outcomes.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        model = identity["model_hash"] if rec["policy"] == "greedy" else None
+        assert rec["run"] == {**identity, "model_hash": model}
+    res = json.loads((out / "results.json").read_text())
+    assert all("run" not in r for recs in res["outcomes"].values() for r in recs)
+
+
+def test_without_run_json_the_lines_identify_the_run(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    identity = json.loads((out / "run.json").read_text())
+    (out / "run.json").unlink()
+    assert cli.main(_bench_args(files, out)) == 0
+    assert _last_json(capsys)["resumed"] == 3 * N_TASKS
+    assert json.loads((out / "run.json").read_text()) == identity
+    before = (out / "outcomes.jsonl").read_bytes()
+    for flag, value, field in [("--seed", "1", "seed"), ("--model", None, "model_hash")]:
+        (out / "run.json").unlink(missing_ok=True)  # a refusal writes no run.json
+        args = _bench_args(files, out)
+        if flag == "--model":
+            args[args.index("--model") + 1] = str(_other_model(files, tmp_path))
+        else:
+            args += [flag, value]
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err
+        assert "different arguments" in err and field in err and len(err.splitlines()) == 1
+        assert (out / "outcomes.jsonl").read_bytes() == before
+
+
+def test_lines_without_identity_resume_only_beside_a_run_json(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    _rewrite_lines(out / "outcomes.jsonl", lambda r: {k: v for k, v in r.items() if k != "run"})
+    before = (out / "outcomes.jsonl").read_bytes()
+    run_json = (out / "run.json").read_bytes()
+    (out / "run.json").unlink()
+    assert cli.main(_bench_args(files, out)) == 2
+    err = capsys.readouterr().err
+    assert "does not record the run that made it" in err and len(err.splitlines()) == 1
+    assert (out / "outcomes.jsonl").read_bytes() == before and not (out / "run.json").exists()
+    (out / "run.json").write_bytes(run_json)  # lines from before they carried it: run.json vouches
+    assert cli.main(_bench_args(files, out)) == 0
+    assert _last_json(capsys)["ran"] == 0
+
+
+def test_a_line_from_another_run_than_run_json_is_refused(first_run, files, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+
+    def other_seed(rec: dict) -> dict:
+        if rec["policy"] == "nn" and rec["task_id"].endswith("1"):
+            rec["run"]["seed"] = 5
+        return rec
+
+    _rewrite_lines(out / "outcomes.jsonl", other_seed)
+    before = (out / "outcomes.jsonl").read_bytes()
+    assert cli.main(_bench_args(files, out)) == 2
+    err = capsys.readouterr().err
+    assert "made by another run" in err and "seed" in err and len(err.splitlines()) == 1
+    assert (out / "outcomes.jsonl").read_bytes() == before
+    (out / "run.json").unlink()  # without run.json: the lines disagree among themselves
+    assert cli.main(_bench_args(files, out)) == 2
+    assert "outcomes of 2 different runs" in capsys.readouterr().err
+
+
+def test_a_model_whose_features_do_not_fit_the_library_is_refused_before_any_episode(
+    files, tmp_path, capsys
+):
+    import dataclasses
+
+    from knotlab.core.selection.qmodel import QModel
+
+    model = QModel.load(files["model"])
+    names = [*model.feature_spec["names"][:-1], "demo[s099-t9]"]  # a demo this library lacks
+    bad = dataclasses.replace(model, feature_spec={**model.feature_spec, "names": names})
+    args = _bench_args(files, tmp_path / "out", policies="nn,greedy")
+    args[args.index("--model") + 1] = str(bad.save(tmp_path / "bad.npz"))
+    args[args.index("--workers") + 1] = "2"  # a mismatch found in a worker would break the pool
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "features do not match this library" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
