@@ -9,6 +9,7 @@ stores the new model; the app then loads it from the store and ranks the next st
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue
 import threading
 import time
@@ -35,10 +36,13 @@ class RetrainReport:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-def retrain_worker(db_url: str, library_path: str, out: Any) -> None:
+def retrain_worker(db_url: str, library_path: str, out: Any, parent_pid: int) -> None:
     """Process body: load labels, fit, store the model; every stage goes to ``out``."""
     import os
 
+    from knotlab.core.lifeline import die_with_parent
+
+    die_with_parent(parent_pid)  # a killed server leaves no training process behind
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     try:
         from knotlab.app.web.resources import save_qmodel_to_store
@@ -118,7 +122,7 @@ class RetrainJob:
             reports = ctx.Queue()
             proc = ctx.Process(
                 target=retrain_worker,
-                args=(self.db_url, self.library_path, reports),
+                args=(self.db_url, self.library_path, reports, os.getpid()),
                 name="knotlab-retrain",
                 daemon=True,  # dies with the server
             )

@@ -49,7 +49,10 @@ class _StreamingRecorder(FrameRecorder):
         self._out.put((float(t), self._nodes[-1], self._grippers[-1], self._closed[-1]))
 
 
-def _init(library_path: str) -> None:
+def _init(library_path: str, parent_pid: int) -> None:
+    from knotlab.core.lifeline import die_with_parent
+
+    die_with_parent(parent_pid)  # a killed server leaves no simulator processes behind
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _TOOLS.get(library_path)
 
@@ -81,7 +84,10 @@ class SimPool:
         self.library_path = library_path
         self._manager = ctx.Manager()
         self._pool = ProcessPoolExecutor(
-            max_workers=workers, mp_context=ctx, initializer=_init, initargs=(library_path,)
+            max_workers=workers,
+            mp_context=ctx,
+            initializer=_init,
+            initargs=(library_path, os.getpid()),
         )
         # Start the workers now (imports and simulator), not on the first Enter.
         for f in [self._pool.submit(os.getpid) for _ in range(workers)]:
