@@ -211,7 +211,7 @@ class LabelPanels:
         for label, version, _ in rows:
             if version == current:
                 self.model_dropdown.value = label  # type: ignore[misc]
-        table = ["| model | trained | labels | val top-1 | V-AUC |", "|---|---|---|---|---|"]
+        table = ["| model | made | labels | top-1 | V-AUC |", "|---|---|---|---|---|"]
         table += [desc for _, _, desc in rows if desc]
         self.model_table.content = "\n".join(table)
 

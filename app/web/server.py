@@ -119,15 +119,15 @@ class LabelApp:
             run = m.get("training_run", {}) if isinstance(m, dict) else {}
             val = run.get("validation", {}) if isinstance(run, dict) else {}
             if info is not None:
-                when = info.created_at.strftime("%Y-%m-%d %H:%M")
+                when = info.created_at.strftime("%m-%d %H:%M")
                 n = str(info.n_training_labels)
                 val = {**val, **{k[4:]: v for k, v in info.metrics.items() if k.startswith("val_")}}
-            else:
-                when, n = ranking.source, str(m.get("n_states", "?"))
+            else:  # a model file (the shipped default): its size is in its training run
+                when, n = "file", str(m.get("n_states", "?")) + " states"
             top1 = val.get("top1")
             auc = val.get("value_auc")
             row = (
-                f"| {ranking.version} | {when} | {n} | "
+                f"| {(ranking.version or '')[:8]} | {when} | {n} | "
                 f"{'-' if top1 is None else f'{top1:.3f}'} | "
                 f"{'-' if auc is None else f'{auc:.3f}'} |"
             )

@@ -34,4 +34,4 @@ def test_agreement_prints_the_pair_and_its_disagreement(tmp_path, capsys) -> Non
 def test_agreement_on_a_missing_database_is_a_one_line_error(tmp_path, capsys) -> None:
     assert main(["labels", "agreement", "--db", f"sqlite:///{tmp_path / 'none.db'}"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("knotlab: error:") and "\n" not in err
+    assert err.startswith("knotlab labels agreement: error:") and "\n" not in err

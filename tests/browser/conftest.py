@@ -149,6 +149,10 @@ class Tab:
             return None
         Path(folder).mkdir(parents=True, exist_ok=True)
         path = Path(folder) / f"{name}.png"
+        toasts = self.page.locator(".mantine-Notification-root button")  # e.g. "software WebGL"
+        for i in range(toasts.count()):
+            with contextlib.suppress(Exception):
+                toasts.nth(i).click(timeout=1000)
         self.page.screenshot(path=str(path))
         return path
 
