@@ -150,9 +150,12 @@ class Tab:
         Path(folder).mkdir(parents=True, exist_ok=True)
         path = Path(folder) / f"{name}.png"
         toasts = self.page.locator(".mantine-Notification-root button")  # e.g. "software WebGL"
-        for i in range(toasts.count()):
+        n_open = toasts.count()
+        for _ in range(n_open):
             with contextlib.suppress(Exception):
-                toasts.nth(i).click(timeout=1000)
+                toasts.nth(0).click(timeout=1000)
+        if n_open:
+            time.sleep(0.8)  # let the toasts' closing animation finish
         self.page.screenshot(path=str(path))
         return path
 
