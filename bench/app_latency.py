@@ -53,6 +53,36 @@ def measure_new_state(tab, n: int, label: str = "") -> list[float]:
     return out
 
 
+def measure_accept(tab, n: int) -> list[float]:
+    """Seconds from Y (accept a try) to the next state's candidates drawn in the browser."""
+    out = []
+    while len(out) < n:
+        tab.focus_canvas()
+        tab.page.keyboard.press("Enter")
+        wait_until(lambda: tab.session.view().phase.value == "judging", 60, "try end")
+        if not tab.session.view().last_try.acceptable:
+            tab.page.keyboard.press("n")
+            wait_until(lambda: tab.session.view().phase.value == "choosing", 20, "reject")
+            continue
+        time.sleep(0.5)  # the expert looks at the result (and the scan-ahead runs)
+        before = (tab.session.view().task_id, tab.session.view().step_index)
+        t0 = time.perf_counter()
+        tab.page.keyboard.press("y")
+        wait_until(
+            lambda b=before: (tab.session.view().task_id, tab.session.view().step_index) != b,
+            20,
+            "next state",
+        )
+        view = tab.session.view()
+        tab.page.wait_for_function(
+            "(t) => document.body.innerText.includes(t)",
+            arg=f"step {view.step_index + 1} of",
+            timeout=10000,
+        )
+        out.append(time.perf_counter() - t0)
+    return out
+
+
 def measure_try(tab, n: int) -> list[float]:
     """Seconds from Enter to the first animation frame in the browser (a gripper drawn)."""
     out = []
@@ -133,6 +163,7 @@ def main() -> int:
                 ),
                 _row("  server share (session + draw calls), 1 tab", SERVER["1"]),
                 _row("Enter to first animation frame, 1 tab", measure_try(tab, args.tries)),
+                _row("accept (Y) to next state drawn, 1 tab", measure_accept(tab, args.tries)),
             ]
             others = [open_tab(browser, app, f"busy{i}") for i in range(3)]
             stop = threading.Event()

@@ -144,6 +144,7 @@ class LabelSession:
         self._own_world = world is None
         self._simulate = simulate  # None: simulate tries in this process
         self.prefer: Callable[[], Sequence[int]] | None = None  # a suggested claiming order
+        self._ahead: _ScanAhead | None = None  # the tried result's scan, started early
         self._lock = threading.RLock()
         self.phase = Phase.CHOOSING
         self.episode: EpisodeInfo | None = None
@@ -242,10 +243,11 @@ class LabelSession:
         self.nodes_k3 = self.world.rope_nodes()
         featurizer = self.ranking.featurizer
         self.cloud_n3 = featurizer.observe(self.world)
-        if self.ranking.model is not None:
-            phi, scan = featurizer.features(self.cloud_n3)
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead.fits(self.cloud_n3, self.ranking):
+            phi, scan = ahead.result()  # scanned while the expert judged the try
         else:
-            phi, scan = None, featurizer.scan(self.cloud_n3)
+            phi, scan = _features(self.ranking, self.cloud_n3)
         self.scan = scan
         ranked = rank_demos(scan, phi, self.ranking.model, self.res.library.keys, self.res.top_k)
         self.candidates = [self._candidate(r, scan) for r in ranked]
@@ -336,6 +338,8 @@ class LabelSession:
                 if self._own_world:
                     self.world.close()
                 return result
+            if result.acceptable and after is not None:  # most tries are accepted: scan ahead
+                self._ahead = _ScanAhead(after, self.res.current)
             self.last_try = result
             self.phase = Phase.JUDGING
             self.message = _try_message(result)
@@ -460,6 +464,46 @@ class LabelSession:
                 self._release_if_unlabelled()
             if self._own_world and was is not Phase.TRYING:
                 self.world.close()
+
+
+def _features(ranking: RankingModel, cloud_n3: np.ndarray):
+    """(phi or None, scan) of a cloud for a ranking model (no features without a model)."""
+    if ranking.model is not None:
+        return ranking.featurizer.features(cloud_n3)
+    return None, ranking.featurizer.scan(cloud_n3)
+
+
+class _ScanAhead:
+    """The scan of a try's resulting rope, run on a thread while the expert judges the try.
+
+    Used only if the next state is exactly that cloud ranked by the same model; otherwise
+    dropped (a rejected try, a model switch).
+    """
+
+    def __init__(self, cloud_n3: np.ndarray, ranking: RankingModel) -> None:
+        self.cloud_n3 = np.array(cloud_n3)
+        self.ranking = ranking
+        self._out: list = []
+        self._thread = threading.Thread(target=self._run, name="scan-ahead", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._out.append(_features(self.ranking, self.cloud_n3))
+        except Exception as exc:  # the state is then scanned again in the foreground
+            self._out.append(exc)
+
+    def fits(self, cloud_n3: np.ndarray, ranking: RankingModel) -> bool:
+        """True when this scan is of ``cloud_n3`` under ``ranking``."""
+        return ranking is self.ranking and np.array_equal(cloud_n3, self.cloud_n3)
+
+    def result(self):
+        """(phi, scan), waiting for the thread; recomputed here if it failed."""
+        self._thread.join()
+        out = self._out[0]
+        if isinstance(out, Exception):
+            return _features(self.ranking, self.cloud_n3)
+        return out
 
 
 def _try_message(result: TryResult) -> str:
