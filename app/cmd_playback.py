@@ -11,31 +11,11 @@ from knotlab.app.options import add_db_argument, db_url
 
 
 def _store_episode(args: argparse.Namespace, episode_id: int):
-    from knotlab.core.experiments.playback import execution_episode, load_matching_library
+    from knotlab.app.episodes import store_episode
     from knotlab.labeling_db.store import open_store
 
     with open_store(db_url(args), create=False, auto_upgrade=False) as store:
-        info = store.episode(episode_id)
-        execution = next(
-            (
-                se.execution
-                for se in store.stored_executions(labeller=info.labeller)
-                if se.execution.execution_id == info.execution_id
-            ),
-            None,
-        )
-    if execution is None:
-        raise LookupError(f"episode {episode_id} has no stored execution")
-    episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}")
-    if execution.library_hash is None:
-        from knotlab.core.demos.library import DemoLibrary
-
-        library = DemoLibrary.load(args.library or defaults.LIBRARY_PATH)
-    else:
-        library = load_matching_library(
-            [args.library, defaults.LIBRARY_PATH], execution.library_hash
-        )
-    return episode, library
+        return store_episode(store, episode_id, args.library)
 
 
 def _run(args: argparse.Namespace) -> int:

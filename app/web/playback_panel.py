@@ -21,9 +21,7 @@ from knotlab.core.experiments.playback import (
     PlaybackEpisode,
     Replay,
     bench_episode,
-    execution_episode,
     export_playback,
-    load_matching_library,
     resimulate,
 )
 from knotlab.core.world.stages import Stage
@@ -230,29 +228,3 @@ class PlaybackPanel:
         self._playing.clear()
         self.client.scene.remove_by_name("/playback")
         self._set_label_visible(True)
-
-
-def store_episode(store, episode_id: int) -> tuple[PlaybackEpisode, DemoLibrary]:
-    """A stored labelling episode as a playback episode, with its library."""
-    info = store.episode(episode_id)
-    execution = next(
-        (
-            se.execution
-            for se in store.stored_executions(labeller=info.labeller)
-            if se.execution.execution_id == info.execution_id
-        ),
-        None,
-    )
-    if execution is None or not execution.steps:
-        raise LookupError(f"episode {episode_id} has no labelled steps to play")
-    episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}")
-    library = (
-        load_matching_library([defaults.LIBRARY_PATH], execution.library_hash or "")
-        if execution.library_hash
-        else None
-    )
-    if library is None:
-        from knotlab.core.demos.library import DemoLibrary
-
-        library = DemoLibrary.load(defaults.LIBRARY_PATH)
-    return episode, library

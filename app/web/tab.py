@@ -15,10 +15,11 @@ from typing import TYPE_CHECKING, Literal
 
 import viser
 
+from knotlab.app.episodes import store_episode
 from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
-from knotlab.app.web.playback_panel import PlaybackPanel, store_episode
+from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import SceneDrawer
 from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
 from knotlab.core.world.frames import FrameRecorder
