@@ -97,9 +97,9 @@ class Inspector:
             contributions = {}
             if ranking.model is not None and phi is not None:
                 names = tuple(fz.feature_spec.names)
-                contributions = {
+                contributions = {  # every demo's: an expert's pick may be far down the list
                     r.demo_index: feature_contributions(ranking.model, phi[r.demo_index], names)
-                    for r in ranked
+                    for r in rank_demos(scan, phi, ranking.model, keys)
                 }
             choices = PolicyChoices(
                 nn=by_cost[0].demo_index if by_cost else 0,
@@ -110,6 +110,21 @@ class Inspector:
                 label, nodes, cloud, ranked, nn_rank, choices, ranking.label, contributions
             )
             return self.view
+
+    def load_path(
+        self, start_nodes_k3: np.ndarray, path: tuple[str, ...] | list[str], label: str
+    ) -> InspectView:
+        """The state reached from a start by transferring the demos of ``path`` in turn."""
+        from knotlab.core.registration.planner import apply_demo
+
+        with self._lock:
+            self.world.reset(np.asarray(start_nodes_k3, dtype=float))
+            fz = self.res.current.featurizer
+            for key in path:
+                cloud = fz.observe(self.world)
+                apply_demo(self.world, self.res.transferer, cloud, self.res.library.index_of(key))
+            nodes = self.world.rope_nodes()
+        return self.load(nodes, label)
 
     def start_lookahead(
         self, depth: int, width: int, on_update: Callable[[InspectView], None]

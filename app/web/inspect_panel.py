@@ -135,6 +135,20 @@ class InspectPanel:
             "opened in Inspect", label, auto_close_seconds=4.0, color="blue"
         )
 
+    def open_pair(self, view: InspectView, demo_a: str, demo_b: str) -> None:
+        """Show a loaded state with two given demos as candidates A and B (e.g. two experts')."""
+        self._after_load(view)
+        keys = self.inspector.res.library.keys
+        for key in (demo_a, demo_b):
+            if key not in self._keys_to_index and key in keys:
+                self._keys_to_index[key] = keys.index(key)
+        options = tuple(self._keys_to_index)
+        self.cand_a.options = options
+        self.cand_b.options = options
+        self.cand_a.value = demo_a  # type: ignore[misc]
+        self.cand_b.value = demo_b  # type: ignore[misc]
+        self.show_candidates()
+
     def run_search(self) -> None:
         """Start the lookahead search (progress and tree update as it runs)."""
         self.search_bar.visible = True

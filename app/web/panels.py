@@ -31,6 +31,8 @@ class Actions:
     use_model: Callable[[str | None], None]  # a model version; None: nearest neighbour
     toggle_warped: Callable[[bool], None]
     suggest: Callable[[], None]
+    agreement: Callable[[], None]
+    open_disagreement: Callable[[str], None]
     follow: Callable[[bool], None]
 
 
@@ -91,6 +93,11 @@ class LabelPanels:
             gui.add_markdown("**What to label next**")
             self.suggest_button = gui.add_button("Suggest what to label next")
             self.suggest_status = gui.add_markdown("")
+            gui.add_markdown("**How far experts agree**")
+            self.agreement_button = gui.add_button("Compute agreement")
+            self.agreement_table = gui.add_markdown("")
+            self.disagreements = gui.add_dropdown("Disagreement", ("-",))
+            self.open_disagreement = gui.add_button("Open it in Inspect", disabled=True)
         self._model_options: dict[str, str | None] = {}
         self._sent: dict[tuple[int, str], object] = {}
         self._wire()
@@ -107,6 +114,8 @@ class LabelPanels:
         self.undo_button.on_click(lambda _e: a.undo())
         self.retrain_button.on_click(lambda _e: a.retrain())
         self.suggest_button.on_click(lambda _e: a.suggest())
+        self.agreement_button.on_click(lambda _e: a.agreement())
+        self.open_disagreement.on_click(lambda _e: a.open_disagreement(self.disagreements.value))
         self.follow_suggested.on_update(lambda _e: a.follow(bool(self.follow_suggested.value)))
         self.show_warped.on_update(lambda _e: a.toggle_warped(bool(self.show_warped.value)))
 

@@ -108,6 +108,20 @@ class LabelApp:
             raise InvalidInputError(f"{split} tasks are numbered 0-{len(tasks) - 1}, got {number}")
         return np.asarray(tasks[number].start_nodes_k3)
 
+    def start_nodes_of(self, start: str) -> np.ndarray:
+        """The start rope of a training task id, or of a stored start state "state:<id>"."""
+        from knotlab.core.errors import InvalidInputError
+
+        if start.startswith("state:"):
+            state = self.store.get_state(int(start.split(":", 1)[1]))
+            if state.rope_nodes_k3 is None:
+                raise InvalidInputError(f"{start} has no rope nodes to simulate from")
+            return np.asarray(state.rope_nodes_k3)
+        for task in self.resources.tasks:
+            if task.task_id == start:
+                return np.asarray(task.start_nodes_k3)
+        raise InvalidInputError(f"{start!r} is not a training start of this app's level")
+
     # ------------------------------------------------------------------ models
     def model_rows(self) -> list[tuple[str, str | None, str]]:
         """(dropdown label, version, table row) for every model the tabs can rank with."""

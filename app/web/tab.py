@@ -41,6 +41,7 @@ class LabelTab:
         self.session: LabelSession | None = None
         self.closed = False
         self._follow = False
+        self._disagreements: dict = {}
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
         self.drawer = SceneDrawer(client, on_pick=self.select)
@@ -58,6 +59,8 @@ class LabelTab:
                 use_model=self.use_model,
                 toggle_warped=lambda _on: self._redraw_warped(),
                 suggest=self.suggest,
+                agreement=self.agreement,
+                open_disagreement=self.open_disagreement,
                 follow=self.follow,
             ),
         )
@@ -238,6 +241,49 @@ class LabelTab:
         """Rank the unlabelled starts for labelling (refused while running or without a model)."""
         if not self.app.start_suggest():
             self._notify("cannot suggest now", "one is running, or there is no model", "yellow")
+
+    def agreement(self) -> None:
+        """Per labeller pair: top-1 agreement, Cohen's kappa, dead ends; list disagreements."""
+        from knotlab.core.selection.agreement import pairwise_agreement
+
+        pairs = pairwise_agreement(self.app.store.state_visits())
+        p = self.panels
+        if not pairs:
+            p.agreement_table.content = "fewer than two labellers share a state yet"
+            return
+        rows = ["| pair | shared | top-1 | kappa | dead ends both / one |", "|---|---|---|---|---|"]
+        self._disagreements = {}
+        for pa in pairs:
+            top1 = f"{pa.n_agree / pa.n_compared:.2f}" if pa.n_compared else "-"
+            kappa = "n/a" if pa.kappa is None else f"{pa.kappa:.2f}"
+            one = pa.dead_end_only_a + pa.dead_end_only_b
+            rows.append(
+                f"| {pa.labeller_a} / {pa.labeller_b} | {pa.n_shared} | {top1} | {kappa} | "
+                f"{pa.dead_end_both} / {one} |"
+            )
+            for d in pa.disagreements:
+                label = (
+                    f"{d.start} step {d.step_index + 1}: {pa.labeller_a} {d.demo_a}, "
+                    f"{pa.labeller_b} {d.demo_b}"
+                )
+                self._disagreements[label] = d
+        p.agreement_table.content = "\n".join(rows)
+        p.disagreements.options = tuple(self._disagreements) or ("-",)
+        p.open_disagreement.disabled = not self._disagreements
+
+    def open_disagreement(self, label: str) -> None:
+        """Rebuild a disagreed state (start + earlier choices) and show both picks in Inspect."""
+        d = self._disagreements.get(label)
+        if d is None:
+            return
+        try:
+            nodes = self.app.start_nodes_of(d.start)
+            view = self.inspector.load_path(nodes, d.path, f"{label}")
+        except Exception as exc:
+            self._notify("cannot open", str(exc), "red")
+            return
+        self.inspect.open_pair(view, d.demo_a, d.demo_b)
+        self._notify("opened in Inspect", label, "blue")
 
     def follow(self, on: bool) -> None:
         """Claim the next ropes in the suggested order (or the oldest first)."""

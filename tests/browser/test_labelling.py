@@ -278,3 +278,45 @@ def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root
     assert tab.server_tab.inspector.view.choices.greedy is not None
     page.get_by_role("button", name="Back to the labelling view").click()
     wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "labelling view back")
+
+
+def test_agreement_panel_lists_a_disagreement_and_opens_it_in_inspect(tabs, app, project_root):
+    import dataclasses
+
+    from knotlab.labeling_db.interchange import read_labels
+
+    # Two experts label the same training start; at step 1 they pick different demos.
+    base = read_labels(project_root / "results" / "labels_oracle_main.jsonl")[0].execution
+    keys = app.resources.library.keys
+    other = next(k for k in keys if k != base.steps[0].chosen_demo)
+    for name, first in (("pat", base.steps[0].chosen_demo), ("quin", other)):
+        steps = (dataclasses.replace(base.steps[0], chosen_demo=first, outcome="progressed"),)
+        app.store.add_execution(
+            dataclasses.replace(
+                base,
+                execution_id=f"agree-{name}",
+                labeller=name,
+                source="human",
+                steps=steps,
+                ended_in_knot=False,
+                dead_ends=(),
+            )
+        )
+    tab = tabs("rae")
+    page = tab.page
+    page.get_by_role("tab", name="Model").click()
+    page.get_by_role("button", name="Compute agreement").click()
+    panels = tab.server_tab.panels
+    wait_until(lambda: "pat / quin" in panels.agreement_table.content, 20, "agreement table")
+    assert not panels.open_disagreement.disabled
+    label = panels.disagreements.value
+    assert "pat" in label and "quin" in label and other in label
+    page.get_by_role("button", name="Open it in Inspect").click()
+    wait_until(
+        lambda: (v := tab.server_tab.inspector.view) is not None and v.label == label,
+        60,
+        "the disagreed state in Inspect",
+    )
+    inspect = tab.server_tab.inspect
+    both = {base.steps[0].chosen_demo, other}
+    wait_until(lambda: {inspect.cand_a.value, inspect.cand_b.value} == both, 60, "both picks")
