@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url, integer
+from knotlab.app.options import add_db_argument, db_url, integer, number
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -49,7 +49,10 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
 
     library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
     resources = load_resources(
-        library_path, defaults.task_set_path(args.level, "train"), top_k=args.top_k
+        library_path,
+        defaults.task_set_path(args.level, "train"),
+        top_k=args.top_k,
+        overlap=getattr(args, "overlap", 0.0),
     )
     store = open_store(db_url(args), create=True, auto_upgrade=True)
     added = resources.register_starts(store, args.level)
@@ -125,6 +128,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
     p.add_argument("--top-k", type=_top_k, default=5, help="candidates shown per state (1-9)")
+    p.add_argument(
+        "--overlap",
+        type=number(minimum=0.0, maximum=1.0),
+        default=0.0,
+        help="share of training starts also offered to a second labeller, for agreement "
+        "statistics (seeded per start; default 0)",
+    )
     p.add_argument(
         "--sim-workers",
         type=integer(0),

@@ -19,6 +19,7 @@ from knotlab.core.jsonsafe import json_safe
 from knotlab.core.registration import SCAN
 from knotlab.core.registration.library_scan import LibraryRegistrar
 from knotlab.core.registration.planner import DemoTransferer
+from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.labeling_db.records import StateProvenance
@@ -84,13 +85,17 @@ def save_qmodel_to_store(
 class AppResources:
     """The library, the level's training starts, and the ranking models every tab can use."""
 
-    def __init__(self, library: DemoLibrary, tasks: TaskSet, *, top_k: int = 5) -> None:
+    def __init__(
+        self, library: DemoLibrary, tasks: TaskSet, *, top_k: int = 5, overlap: float = 0.0
+    ) -> None:
         if top_k < 1:
             raise InvalidInputError(f"--top-k must be >= 1, got {top_k}")
         self.library = library
         self.library_hash = library.content_hash()
         self.tasks = tasks
         self.top_k = top_k
+        # A seeded share of starts offered to a second labeller, for agreement statistics.
+        self.overlap = OverlapPolicy(overlap, seed=0) if overlap > 0 else None
         self.transferer = DemoTransferer(library)
         # An expert waits on each scan: its chunks run on two threads (the kernel releases the
         # GIL; chunks are independent, so the costs are the same as on one).
@@ -162,7 +167,9 @@ class AppResources:
         return len(todo)
 
 
-def load_resources(library_path: Path, tasks_path: Path, top_k: int) -> AppResources:
+def load_resources(
+    library_path: Path, tasks_path: Path, top_k: int, overlap: float = 0.0
+) -> AppResources:
     """Library and task set from files (the task set must be a training split)."""
     library = DemoLibrary.load(library_path)
     tasks = TaskSet.load(tasks_path)
@@ -171,4 +178,4 @@ def load_resources(library_path: Path, tasks_path: Path, top_k: int) -> AppResou
             f"{tasks_path}: the app labels training starts only, this task set is the "
             f"{tasks.split!r} split"
         )
-    return AppResources(library, tasks, top_k=top_k)
+    return AppResources(library, tasks, top_k=top_k, overlap=overlap)

@@ -211,6 +211,7 @@ class LabelSession:
             library_hash=self.res.library_hash,
             source="human",
             prefer=self.prefer() if self.prefer is not None else (),
+            overlap=self.res.overlap,
         )
         if info is None:
             self.phase = Phase.NO_STARTS

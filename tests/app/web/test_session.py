@@ -187,3 +187,17 @@ def test_a_suggested_order_is_followed_and_never_claims_a_held_start(store, reso
     c.prefer = lambda: order
     c.start()
     assert c.episode.start_state_id == ids[-2]
+
+
+def test_with_overlap_a_second_labeller_gets_a_start_another_holds(store, resources):
+    from knotlab.core.selection.agreement import OverlapPolicy
+
+    a = _session(store, resources, "ann")
+    try:
+        resources.overlap = OverlapPolicy(1.0, seed=0)  # every start offered twice
+        b = _session(store, resources, "bob")
+        assert b.episode.start_state_id == a.episode.start_state_id
+        c = _session(store, resources, "cat")  # a third labeller is not offered it
+        assert c.episode.start_state_id != a.episode.start_state_id
+    finally:
+        resources.overlap = None
