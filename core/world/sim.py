@@ -215,6 +215,13 @@ def _link_ends(state: SimSnapshot) -> tuple[np.ndarray, np.ndarray]:
     return state.positions_l3 - half * axis_l3, state.positions_l3 + half * axis_l3
 
 
+def _nodes_of(state: SimSnapshot) -> np.ndarray:
+    """Rope nodes (L + 1, 3) of a state: the two free ends and the averaged joints."""
+    lower_l3, upper_l3 = _link_ends(state)
+    joints = 0.5 * (upper_l3[:-1] + lower_l3[1:])
+    return np.concatenate([lower_l3[:1], joints, upper_l3[-1:]], axis=0)
+
+
 def _point_segment_distance(q_3: np.ndarray, a_l3: np.ndarray, b_l3: np.ndarray) -> np.ndarray:
     """Distance from point q to each segment [a_l, b_l]."""
     d = b_l3 - a_l3
@@ -351,9 +358,7 @@ class RopeWorld:
 
     def rope_nodes(self) -> np.ndarray:
         """Rope node positions (n_links + 1, 3): the capsule end points (joints averaged)."""
-        lower_l3, upper_l3 = _link_ends(self._state())
-        joints = 0.5 * (upper_l3[:-1] + lower_l3[1:])
-        return np.concatenate([lower_l3[:1], joints, upper_l3[-1:]], axis=0)
+        return _nodes_of(self._state())
 
     @property
     def sim_time(self) -> float:
@@ -539,8 +544,7 @@ class RopeWorld:
         pos = np.array([xyz for xyz, _ in poses])
         zeros = np.zeros_like(pos)
         quats = np.array([q for _, q in poses])
-        lower, upper = _link_ends(SimSnapshot(pos, quats, zeros, zeros, 0.0, self.params))
-        nodes = np.concatenate([lower[:1], 0.5 * (upper[:-1] + lower[1:]), upper[-1:]], axis=0)
+        nodes = _nodes_of(SimSnapshot(pos, quats, zeros, zeros, 0.0, self.params))
         rec.add(self._sim_time - t0, nodes, grippers_g3, closed_g)
 
     def execute(
