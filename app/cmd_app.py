@@ -87,12 +87,17 @@ def _run(args: argparse.Namespace) -> int:
         print(f"note: port {args.port} was busy; serving on {app.server.get_port()}")
     print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # Both set explicitly: a server started in the background (a shell's `&`, a test runner)
+    # inherits SIGINT as ignored, and Ctrl-C must still stop it cleanly.
+    previous = {
+        sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         while not stop.is_set():
             time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print("stopping: closing tabs (no half-written labels)...", flush=True)
     app.stop()
     app.store.close()

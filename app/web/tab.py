@@ -267,9 +267,9 @@ class LabelTab:
                     f"{pa.labeller_b} {d.demo_b}"
                 )
                 self._disagreements[label] = d
-        p.agreement_table.content = "\n".join(rows)
         p.disagreements.options = tuple(self._disagreements) or ("-",)
         p.open_disagreement.disabled = not self._disagreements
+        p.agreement_table.content = "\n".join(rows)  # last: the table says the panel is ready
 
     def open_disagreement(self, label: str) -> None:
         """Rebuild a disagreed state (start + earlier choices) and show both picks in Inspect."""

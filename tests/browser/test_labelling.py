@@ -225,17 +225,17 @@ def test_inspect_shows_the_three_policies_plot_and_registration(tabs):
     page.get_by_role("tab", name="Inspect").click()
     page.get_by_role("button", name="Inspect", exact=True).click()
     panel = tab.server_tab.inspect
-    wait_until(lambda: tab.server_tab.inspector.view is not None, 20, "inspected state")
+    wait_until(lambda: "| nearest neighbour |" in panel.choices.content, 30, "the choices shown")
     view = tab.server_tab.inspector.view
     assert view.choices.nn is not None and view.choices.greedy is not None
     from playwright.sync_api import expect
 
-    expect(page.get_by_text("nearest neighbour", exact=True).first).to_be_visible()
-    assert panel.plot.image.shape[0] > 100  # the contribution bar plot was rendered
+    expect(page.get_by_role("cell", name="nearest neighbour").first).to_be_visible(timeout=20_000)
+    wait_until(lambda: panel.plot.image.shape[0] > 100, 30, "the contribution bar plot")
     page.get_by_role("button", name="Run lookahead(2, 5)").click()
     wait_until(lambda: view.search_progress >= 1.0, 180, "the lookahead search")
     assert view.choices.lookahead is not None and view.search_error is None
-    expect(page.get_by_text("root candidate")).to_be_visible()
+    expect(page.get_by_text("root candidate")).to_be_visible(timeout=20_000)
     page.locator("label", has_text="Show A's registration in 3D").click()
     wait_until(lambda: _scene_has(page, "/inspect/warped"), 10, "registration drawn")
     assert _scene_has(page, "/inspect/correspondence")
