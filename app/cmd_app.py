@@ -85,13 +85,14 @@ def _run(args: argparse.Namespace) -> int:
     app = build_app(args, lite_rendering=args.lite_rendering)  # bad input: one line at the edge
     if app.server.get_port() != args.port and args.port != 0:
         print(f"note: port {args.port} was busy; serving on {app.server.get_port()}")
-    print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)
     stop = threading.Event()
     # Both set explicitly: a server started in the background (a shell's `&`, a test runner)
     # inherits SIGINT as ignored, and Ctrl-C must still stop it cleanly.
     previous = {
         sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
     }
+    # Only now announce the URL: whoever reads it may press Ctrl-C at once.
+    print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)
     try:
         while not stop.is_set():
             time.sleep(0.2)
