@@ -268,7 +268,8 @@ def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root
     wait_until(lambda: panel.replay is not None, 120, "the replay")
     assert panel.replay.knot and not panel.replay.warnings  # the recorded knot, reproduced
     wait_until(lambda: panel.frame > 5, 30, "the timeline to move while playing")
-    assert _scene_has(page, "/playback/rope")
+    # The server has drawn the frame; the browser's scene tree gets it a moment later.
+    wait_until(lambda: _scene_has(page, "/playback/rope"), 20, "the replayed rope in the browser")
     assert tab.server_tab.drawer.label_root.visible is False
     tab.screenshot("playback")
     with page.expect_download(timeout=120_000) as download:
