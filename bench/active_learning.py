@@ -16,8 +16,15 @@ states from its labels, so every state is featurised again (~0.3 s a state on on
 without them each state is featurised once and cached (on disk, under --out). Landmark columns
 are the same for every demo of a state, so they shape the value, not the ranking top-1 measures.
 
+Greedy success (``--greedy-tasks K``, default 0 = skip): for the first curve seed, at every
+``--greedy-every``-th size, the round's model drives the greedy policy on the first K main-level
+test tasks (`knotlab bench`, resumable under OUT's folder ``greedy/``), so the curve shows what a
+label buys in knots tied, not only in agreement. The models are fitted on training labels only;
+the test tasks only measure them.
+
 Usage: python bench/active_learning.py [--labels results/labels_oracle_main.jsonl]
        [--step 20] [--max-labels 200] [--seeds 0,1] [--C 1000] [--D 10] [--landmarks 0,0]
+       [--greedy-tasks 0] [--greedy-every 40] [--workers 2]
        [--out runs/active_learning/curve.png] [--json]
 """
 
@@ -66,6 +73,31 @@ class CurvePoint:
     n_labels: int
     top1: float
     fit_s: float
+    greedy_successes: int | None = None  # on the first --greedy-tasks test tasks, when run
+    greedy_tasks: int | None = None
+
+
+def _greedy_success(model: QModel, library: DemoLibrary, args, order: str, n: int) -> int:
+    """Knots tied by greedy with ``model`` on the first --greedy-tasks main test tasks."""
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.experiments.bench import run_bench
+
+    out = Path(args.out).parent / "greedy" / f"{order}_{n:04d}"
+    tasks = TaskSet.load(ROOT / "static" / "tasks_main_test.npz")
+    result = run_bench(
+        out,
+        library=library,
+        task_set=tasks,
+        policies=["greedy"],
+        n_tasks=args.greedy_tasks,
+        model=model,
+        workers=args.workers,
+        progress=False,
+    )
+    records = result.outcomes["greedy"]
+    if any(r.get("failure_kind") == "error" for r in records):
+        raise SystemExit(f"active_learning: greedy episodes errored in {out}: not a result")
+    return sum(bool(r["success"]) for r in records)
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -185,8 +217,13 @@ def run_curve(args) -> tuple[list[CurvePoint], dict]:
                         )  # fmt: skip
                 model, fit_s = _fit([by_id[i] for i in labelled], library, args, cache, seed)
                 top1 = ranking_metrics(model, held)["top1"]
-                points.append(CurvePoint(seed, order, n, float(top1), fit_s))
-                print(f"seed {seed} {order:<9} {n:>4} labels: top-1 {top1:.3f} ({fit_s:.1f} s)")
+                wins = tasks = None
+                if args.greedy_tasks and seed == args.seeds[0] and n % args.greedy_every == 0:
+                    wins, tasks = _greedy_success(model, library, args, order, n), args.greedy_tasks
+                points.append(CurvePoint(seed, order, n, float(top1), fit_s, wins, tasks))
+                greedy = "" if wins is None else f", greedy {wins}/{tasks} knots"
+                print(f"seed {seed} {order:<9} {n:>4} labels: top-1 {top1:.3f}{greedy} "
+                      f"({fit_s:.1f} s)")  # fmt: skip
     # Reference: how often the oracle took NN's choice (its first candidate) in held-out states.
     held_steps = [
         st for ex in held_out if ex.execution_id in parts for st in ex.steps if st.candidates
@@ -224,11 +261,20 @@ def summarise(points: list[CurvePoint]) -> dict:
     }
     target = mean["random"][-1]
     reach = next((n for n, t in zip(sizes, mean["suggested"], strict=True) if t >= target), None)
+    greedy = {
+        order: [
+            [p.n_labels, p.greedy_successes, p.greedy_tasks]
+            for p in sorted(points, key=lambda p: p.n_labels)
+            if p.order == order and p.greedy_successes is not None
+        ]
+        for order in ORDERS
+    }
     return {
         "sizes": sizes,
         "mean_top1": mean,
         "random_final_top1": target,
         "labels_to_reach": reach,
+        "greedy_successes": greedy,
     }
 
 
@@ -248,6 +294,10 @@ def format_table(points: list[CurvePoint], summary: dict) -> str:
             f"{n:>6} {cells} {summary['mean_top1']['random'][i]:>7.3f} "
             f"{summary['mean_top1']['suggested'][i]:>7.3f}"
         )
+    for order, rows in summary.get("greedy_successes", {}).items():
+        if rows:
+            cells = ", ".join(f"{n}: {k}/{t}" for n, k, t in rows)
+            lines.append(f"greedy knots tied, {order} order (labels: successes/tasks): {cells}")
     reach = summary["labels_to_reach"]
     lines.append(
         f"random order's final top-1 {summary['random_final_top1']:.3f} at {summary['sizes'][-1]} "
@@ -261,9 +311,10 @@ def plot_curve(points: list[CurvePoint], summary: dict, path: Path, title: str) 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6.0, 4.0), dpi=110)
+    greedy = [p for p in points if p.greedy_successes is not None]
+    fig = Figure(figsize=(11.0 if greedy else 6.0, 4.0), dpi=110)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    ax = fig.add_subplot(1, 2 if greedy else 1, 1)
     colours = {"random": "#4C72B0", "suggested": "#DD8452"}
     for order in ORDERS:
         for s in sorted({p.seed for p in points}):
@@ -278,6 +329,25 @@ def plot_curve(points: list[CurvePoint], summary: dict, path: Path, title: str) 
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
+    if greedy:
+        from knotlab.core.experiments.bench import wilson_interval
+
+        gx = fig.add_subplot(1, 2, 2)
+        for order in ORDERS:
+            mine = sorted((p for p in greedy if p.order == order), key=lambda p: p.n_labels)
+            if not mine:
+                continue
+            rate = [p.greedy_successes / p.greedy_tasks for p in mine]  # type: ignore[operator]
+            ci = [wilson_interval(p.greedy_successes, p.greedy_tasks) for p in mine]  # type: ignore[arg-type]
+            xs = [p.n_labels for p in mine]
+            gx.fill_between(xs, [c[0] for c in ci], [c[1] for c in ci], color=colours[order],
+                            alpha=0.15)  # fmt: skip
+            gx.plot(xs, rate, color=colours[order], lw=2.2, marker="o", label=order)
+        gx.set_xlabel("labelled executions")
+        gx.set_ylabel(f"greedy success, first {greedy[0].greedy_tasks} main test tasks")
+        gx.set_title("what the labels buy in knots (Wilson 95 %)", fontsize=10)
+        gx.grid(alpha=0.3)
+        gx.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
     return path
@@ -301,12 +371,19 @@ def main() -> int:
     ap.add_argument("--C", type=float, default=1000.0)
     ap.add_argument("--D", type=float, default=10.0)
     ap.add_argument("--landmarks", type=_pair, default=(0, 0), help="labelled,dead-end (0,0)")
+    ap.add_argument("--greedy-tasks", type=int, default=0, help="greedy on K test tasks (0)")
+    ap.add_argument("--greedy-every", type=int, default=40, help="at every E-th size (40)")
+    ap.add_argument("--workers", type=int, default=2, help="bench workers for greedy (2)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "active_learning" / "curve.png"))
     ap.add_argument("--json", action="store_true", help="print the summary as JSON last")
     args = ap.parse_args()
     args.seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     if args.step < 1 or args.max_labels < args.step:
         print("active_learning: error: need 1 <= --step <= --max-labels", file=sys.stderr)
+        return 2
+    if args.greedy_tasks < 0 or args.greedy_every < 1 or args.workers < 1:
+        print("active_learning: error: need --greedy-tasks >= 0, --greedy-every and --workers "
+              ">= 1", file=sys.stderr)  # fmt: skip
         return 2
     t0 = time.perf_counter()
     points, info = run_curve(args)

@@ -94,6 +94,67 @@ def _scan_bench(n_points: int, workers: int, repeats: int, rng: np.random.Genera
     }
 
 
+def _scan_seconds(n_points: int, n_demos: int, workers: int, repeats: int, rng) -> float:
+    """Median wall seconds of one whole-library scan (demo side prepared, kernels warm)."""
+    demos = library(rng, n_demos, n_points)
+    scene = corrupt(rng, smooth_warp(rng, 0.03)(demos[0]))
+    registrar = LibraryRegistrar(SCAN, chunk_size=16, n_workers=workers)
+    key = f"scaling-{n_points}-{n_demos}"
+    registrar.scan(scene, demos, key=key)  # prepare + warm-up
+    seconds, _ = _median_time(lambda: registrar.scan(scene, demos, key=key), repeats)
+    return seconds
+
+
+def _scaling(workers: int, repeats: int, rng) -> dict:
+    """Scan cost against points per cloud (148 demos) and against library size (150 points),
+    with the log-log slopes (cost ~ points^a, ~ demos^b)."""
+    points = (50, 81, 100, 150, 300)
+    sizes = (37, 74, 148, 296)
+    by_points = {n: _scan_seconds(n, N_DEMOS, workers, repeats, rng) for n in points}
+    by_size = {a: _scan_seconds(150, a, workers, repeats, rng) for a in sizes}
+    slope_p = float(np.polyfit(np.log(points), np.log(list(by_points.values())), 1)[0])
+    slope_a = float(np.polyfit(np.log(sizes), np.log(list(by_size.values())), 1)[0])
+    return {
+        "workers": workers,
+        "points": {str(n): {"scan_s": t, "fits_per_s": N_DEMOS / t} for n, t in by_points.items()},
+        "library_sizes_at_150": {
+            str(a): {"scan_s": t, "fits_per_s": a / t} for a, t in by_size.items()
+        },
+        "slope_points": slope_p,
+        "slope_library": slope_a,
+    }
+
+
+def _plot_scaling(scaling: dict, path: Path) -> Path:
+    """Log-log plot: scan seconds against points per cloud and against library size."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.0, 3.6), dpi=110)
+    FigureCanvasAgg(fig)
+    panels = (
+        ("points", f"points per cloud ({N_DEMOS} demos)", scaling["slope_points"]),
+        ("library_sizes_at_150", "demos in the library (150 points)", scaling["slope_library"]),
+    )
+    for i, (key, label, slope) in enumerate(panels):
+        ax = fig.add_subplot(1, 2, i + 1)
+        xs = [int(k) for k in scaling[key]]
+        ys = [1000 * v["scan_s"] for v in scaling[key].values()]
+        ax.loglog(xs, ys, marker="o", lw=2, color="#4C72B0")
+        for x, y, v in zip(xs, ys, scaling[key].values(), strict=True):
+            ax.annotate(f"{v['fits_per_s']:,.0f}/s", (x, y), textcoords="offset points",
+                        xytext=(4, -12), fontsize=7)  # fmt: skip
+        ax.set_xlabel(label)
+        ax.set_ylabel("ms per whole-library scan")
+        ax.set_title(f"cost ~ x^{slope:.2f}", fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+    fig.suptitle(f"Library scan, SCAN preset, {scaling['workers']} worker threads", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+    return path
+
+
 def _phase_split(demo, scene, repeats: int) -> dict[str, float]:
     """ms per whole-library scan, 1 thread, per phase: the fused kernel is run stopping after
     each phase in turn (`stop_after`) and the medians are differenced."""
@@ -202,6 +263,16 @@ def main() -> None:
     parser.add_argument(
         "--cold-start", action="store_true", help="also time numba compilation from an empty cache"
     )
+    parser.add_argument(
+        "--scaling",
+        action="store_true",
+        help="also time scans at 50-300 points and 37-296 demos, with a log-log plot",
+    )
+    parser.add_argument(
+        "--plot",
+        default=str(Path(__file__).resolve().parents[1] / "runs" / "registration_scaling.png"),
+        help="where --scaling writes its plot",
+    )
     args = parser.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     rng = np.random.default_rng(2024)
@@ -218,6 +289,7 @@ def main() -> None:
     pairs = _pair_bench(rng, args.pairs)
     spear = None if args.quick else _spearman(rng, 100, args.workers)
     start = _start_up() if args.cold_start else None
+    scaling = _scaling(args.workers, args.repeats, rng) if args.scaling else None
 
     print("knotlab registration benchmark")
     for key, val in machine.items():
@@ -255,10 +327,22 @@ def main() -> None:
             f"\nStart-up (fresh interpreter: import + first SCAN registration): numba cache warm "
             f"{start['warm_s']:.2f} s, cold (compiling) {start['cold_s']:.1f} s"
         )
+    if scaling:
+        print(f"\nScaling ({args.workers} workers; medians of {args.repeats})")
+        print("| points | ms per scan | fits/s |\n|---|---|---|")
+        for n, v in scaling["points"].items():
+            print(f"| {n} | {1000 * v['scan_s']:.1f} | {v['fits_per_s']:,.0f} |")
+        print("\n| demos (150 points) | ms per scan | fits/s |\n|---|---|---|")
+        for a, v in scaling["library_sizes_at_150"].items():
+            print(f"| {a} | {1000 * v['scan_s']:.1f} | {v['fits_per_s']:,.0f} |")
+        print(
+            f"cost ~ points^{scaling['slope_points']:.2f}, ~ demos^{scaling['slope_library']:.2f}; "
+            f"plot: {_plot_scaling(scaling, Path(args.plot))}"
+        )
     machine["load_avg_1min_end"] = os.getloadavg()[0]
     if args.json:
         out = {"machine": machine, "scan": scans, "pairs": pairs, "spearman": spear}
-        print(json.dumps({**out, "start_up": start}))
+        print(json.dumps({**out, "start_up": start, "scaling": scaling}))
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from knotlab.app.web.resources import AppResources, RankingModel
+from knotlab.app.web.sim_pool import PoolRunner, SimPool
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import DemoTransferer, TransferPlan
 from knotlab.core.selection.explain import Contribution, PolicyChoices, feature_contributions
@@ -70,8 +71,9 @@ class InspectView:
 class Inspector:
     """Explains decisions on any rope state, with its own simulator."""
 
-    def __init__(self, resources: AppResources) -> None:
+    def __init__(self, resources: AppResources, pool: SimPool | None = None) -> None:
         self.res = resources
+        self.pool = pool  # lookahead levels simulated in parallel there, when given
         self.world = RopeWorld()
         self._lock = threading.Lock()
         self.view: InspectView | None = None
@@ -147,8 +149,13 @@ class Inspector:
             on_update(view)
 
         def search() -> None:
-            policy = LookaheadPolicy(ranking.model, depth, width)
-            transferer = _CountingTransferer(self.res.transferer, counted)
+            if self.pool is not None:  # a level's expansions side by side in the workers
+                runner = PoolRunner(self.pool, counted)
+                policy = LookaheadPolicy(ranking.model, depth, width, runner=runner)
+                transferer = self.res.transferer
+            else:
+                policy = LookaheadPolicy(ranking.model, depth, width)
+                transferer = _CountingTransferer(self.res.transferer, counted)
             t0 = time.perf_counter()
             try:
                 with self._lock:

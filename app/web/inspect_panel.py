@@ -15,7 +15,7 @@ import viser
 
 from knotlab.app.web.geometry import tube_faces, tube_vertices
 from knotlab.app.web.inspect import Inspector, InspectView
-from knotlab.core.selection.explain import lookahead_tree
+from knotlab.core.selection.explain import lookahead_tree, search_tree_lines
 
 log = logging.getLogger(__name__)
 SOURCES = ("current labelling state", "training start", "test task")
@@ -184,7 +184,8 @@ class InspectPanel:
         if info:
             rows = lookahead_tree(info, keys)
             lines = [
-                f"search: {info.get('expansions', 0)} simulated expansions in "
+                f"search: {info.get('expansions', 0)} expansions "
+                f"({info.get('reused_expansions', 0)} reused) in "
                 f"{info.get('wall_s', 0):.1f} s; knot found: "
                 f"**{'yes' if info.get('goal_found') else 'no'}**",
                 "",
@@ -192,6 +193,10 @@ class InspectPanel:
                 "|---|---|---|",
             ]
             lines += [f"| `{k}` | {d} | {v:.2f} |" for k, d, v in rows]
+            tree = search_tree_lines(info, keys)
+            if tree:
+                lines += ["", "**The search tree** (children under their parent, in search order):"]
+                lines += ["", *tree]
             self.tree.content = "\n".join(lines)
         table = [
             "| rank | demo | Q | cost | NN rank |",

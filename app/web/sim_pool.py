@@ -1,4 +1,4 @@
-"""Tries simulated in worker processes, their frames streamed back while they run.
+"""Tries and search expansions simulated in worker processes (tries stream their frames back).
 
 PyBullet keeps the GIL while it steps, so a try simulated on a server thread slows every other
 tab's scan, drawing and websocket traffic. Worker processes (spawned, one simulator each) run
@@ -12,13 +12,17 @@ import multiprocessing as mp
 import os
 import queue
 import threading
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from knotlab.core.parallel import PerProcess
 from knotlab.core.registration.planner import ActionOutcome
+from knotlab.core.selection.expansion import ExpansionJob, ExpansionResult, expand
+from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.sim import SimSnapshot
 
@@ -34,6 +38,24 @@ def _build_tools(library_path: str) -> tuple[Any, Any]:
 
 
 _TOOLS = PerProcess(_build_tools)  # per worker process: library path -> (world, transferer)
+
+
+@dataclass(frozen=True)
+class _FeaturizerSpec:
+    """Which featurizer a worker needs: equal (and kept) while the library and model are."""
+
+    library_path: str
+    model_hash: str
+    model: QModel = field(compare=False, hash=False)
+
+
+def _build_featurizer(spec: _FeaturizerSpec) -> Any:
+    from knotlab.core.selection.features import LibraryFeaturizer
+
+    return LibraryFeaturizer.for_model(_TOOLS.get(spec.library_path)[1].library, spec.model)
+
+
+_FEATURIZER = PerProcess(_build_featurizer)  # per worker: the featurizer of the last model
 
 
 class _StreamingRecorder(FrameRecorder):
@@ -74,6 +96,37 @@ def _try_job(
         return apply_demo(world, transferer, cloud_n3, demo_index, frames=recorder)
     finally:
         frames_out.put(_DONE)
+
+
+def _expand_job(library_path: str, model: QModel, job: ExpansionJob) -> ExpansionResult:
+    world, transferer = _TOOLS.get(library_path)
+    featurizer = _FEATURIZER.get(_FeaturizerSpec(library_path, model.content_hash(), model))
+    return expand(world, transferer, featurizer, model, job)
+
+
+class PoolRunner:
+    """Runs a lookahead level's expansions at once on the pool (`ExpansionRunner`)."""
+
+    def __init__(self, pool: SimPool, on_result: Callable[[], None] | None = None) -> None:
+        self.pool = pool
+        self.on_result = on_result
+
+    def run(
+        self, world, transferer, featurizer, model: QModel, jobs: Sequence[ExpansionJob]
+    ) -> Iterator[ExpansionResult]:
+        """Submit every job now; yield the results in the jobs' order."""
+        futures = [
+            self.pool._pool.submit(_expand_job, self.pool.library_path, model, job) for job in jobs
+        ]
+        try:
+            for future in futures:
+                result = future.result()
+                if self.on_result is not None:
+                    self.on_result()
+                yield result
+        finally:  # the search stopped early (a knot): nobody wants the rest
+            for future in futures:
+                future.cancel()
 
 
 class SimPool:

@@ -65,7 +65,7 @@ class LabelTab:
             ),
         )
         with self.panels.tabs.add_tab("Inspect", icon=viser.Icon.ZOOM_QUESTION):
-            self.inspector = Inspector(app.resources)
+            self.inspector = Inspector(app.resources, app.sim_pool)
             self.inspect = InspectPanel(
                 client,
                 self.inspector,

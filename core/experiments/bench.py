@@ -317,6 +317,7 @@ class BenchWorker:
         )
         self.transferer = DemoTransferer(spec.library)
         self._policies: dict = {}
+        self.node = _ray_node_id()
 
     def policy(self, name: str):
         """The named policy, built on first use."""
@@ -353,11 +354,26 @@ class BenchWorker:
                 self.world.close()
             self.world = RopeWorld()
         out.update(task_index=job.task_index, seed=job.seed, pid=os.getpid())
+        if self.node is not None:
+            out["node"] = self.node  # which Ray node ran it: per-node throughput
         return out
 
     def close(self) -> None:
         """Release the simulator."""
         self.world.close()
+
+
+def _ray_node_id() -> str | None:
+    """The Ray node this process runs on, when it is a Ray worker (else None)."""
+    import sys
+
+    ray = sys.modules.get("ray")  # imported only where Ray runs us: never import it here
+    if ray is None or not ray.is_initialized():
+        return None
+    try:
+        return str(ray.get_runtime_context().get_node_id())
+    except Exception:  # an old or partial Ray: the node is only a label
+        return None
 
 
 # This process's warm state (pool worker or in-process); Ray actors hold a BenchWorker instead.

@@ -31,6 +31,14 @@ def kernel_constants(dt: np.dtype, params: RegistrationParams) -> np.ndarray:
     return np.array(c, dtype=dt)
 
 
+def exp_bits_constants(dt: np.dtype) -> tuple[np.floating, np.floating]:
+    """(exponent bias, 2^mantissa bits) in the RPM dtype: what `_exp_neg_row` builds 2^-k from."""
+    dt = np.dtype(dt)
+    if dt == np.float32:
+        return np.float32(127.0), np.float32(2.0**23)
+    return np.float64(1023.0), np.float64(2.0**52)
+
+
 _K_PRIOR, _K_FRAC, _K_CUTOFF, _K_ONE, _K_ZERO, _K_TINY = range(16, 22)
 TARGET_RULES = {"batch": 0, "gpu": 1, "weighted": 2}
 # stop_after: run the phases up to this one in every iteration (the benchmark's phase split)
@@ -39,7 +47,10 @@ PHASES = ("affinity", "sinkhorn", "targets", "tps fit")
 
 @njit(cache=True, nogil=True, fastmath=False)
 def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no cover - compiled
-    """p[i, j] = exp(-min(s[j], cap)) for j < m, s >= 0; 2^-k built in `bits` (a view: bits_f)."""
+    """p[i, j] = exp(-min(s[j], cap)) for j < m, s >= 0; 2^-k built in `bits` (a view: bits_f).
+
+    e_bias and e_shift are the exponent bias and 2^(mantissa bits), both in the RPM dtype.
+    """
     log2e, half, ln2_hi, ln2_lo, cap = cst[0], cst[1], cst[2], cst[3], cst[4]
     c0, c1, c2, c3, c4, c5 = cst[5], cst[6], cst[7], cst[8], cst[9], cst[10]
     c6, c7, c8, c9, c10 = cst[11], cst[12], cst[13], cst[14], cst[15]
@@ -59,7 +70,11 @@ def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no 
         poly = poly * r + c1
         poly = poly * r + c0
         s[j] = poly
-        bits[j] = (e_bias - int(kf)) << e_shift  # the IEEE bit pattern of 2^-k
+        # The IEEE bit pattern of 2^-k, (bias - k) << shift, formed as a float product (exact:
+        # a small integer times a power of two) and converted to the bits' integer type on
+        # store. `int(kf)` would go through int64, which AVX2 cannot convert from float32 in
+        # SIMD registers, and the whole loop ran scalar (2.4 ns a point instead of ~0.3).
+        bits[j] = (e_bias - kf) * e_shift
     for j in range(m):
         p[i, j] = s[j] * bits_f[j]
 

@@ -45,7 +45,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError, SolverError
-from knotlab.core.registration.kernel import PHASES, TARGET_RULES, kernel_constants, rpm_kernel
+from knotlab.core.registration.kernel import (
+    PHASES,
+    TARGET_RULES,
+    exp_bits_constants,
+    kernel_constants,
+    rpm_kernel,
+)
 from knotlab.core.registration.params import (
     COST_NAMES,
     EXACT,
@@ -266,7 +272,7 @@ def rpm_batch(
     lams, temps = params.normalised_schedule()
     cst = kernel_constants(dt, params)
     bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)
-    e_bias, e_shift = (127, 23) if dt == np.float32 else (1023, 52)
+    e_bias, e_shift = exp_bits_constants(dt)
 
     e_f = np.zeros((nb, k, 3), dt)
     e_g = np.zeros((nb, ky, 3), dt)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.world.stages import Stage
 
 
 @dataclass(frozen=True)
@@ -53,3 +54,43 @@ def lookahead_tree(info: dict, keys: tuple[str, ...]) -> list[tuple[str, int, fl
     backed = info.get("backed_up", {})
     rows = [(keys[int(a)], int(d), float(v)) for a, (d, v) in backed.items()]
     return sorted(rows, key=lambda r: (-r[1], -r[2]))
+
+
+def search_tree_lines(info: dict, keys: tuple[str, ...], max_lines: int = 60) -> list[str]:
+    """The lookahead's whole tree as a nested markdown list, in the order it was searched.
+
+    One line per expansion: the demo, its Q at the parent, the stage its simulation reached,
+    the child's value V = max Q there (none past the horizon or after a failure), and a mark
+    where the knot was found; children are indented under their parent.
+    """
+    tree = info.get("tree") or []
+    children: dict[int, list[dict]] = {}
+    for entry in tree:
+        children.setdefault(int(entry["parent"]), []).append(entry)
+    lines: list[str] = []
+
+    def emit(parent: int, depth: int) -> None:
+        for e in children.get(parent, []):
+            if len(lines) >= max_lines:
+                return
+            value = "-" if e.get("value") is None else f"{e['value']:.2f}"
+            knot = " **knot**" if e.get("knot") else ""
+            failed = f" ({e['failure']})" if e.get("failure") else ""
+            memo = " (reused)" if e.get("reused") else ""
+            lines.append(
+                f"{'  ' * depth}- `{keys[int(e['action'])]}` Q {e['q']:.2f} -> stage "
+                f"{_stage_name(e.get('stage'))}, V {value}{knot}{failed}{memo}"
+            )
+            emit(int(e["node"]), depth + 1)
+
+    emit(0, 0)
+    if len(tree) > len(lines):
+        lines.append(f"- ... {len(tree) - len(lines)} more expansions")
+    return lines
+
+
+def _stage_name(stage: int | None) -> str:
+    try:
+        return Stage(int(stage)).name.lower() if stage is not None else "?"
+    except ValueError:
+        return str(stage)

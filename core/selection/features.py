@@ -27,6 +27,9 @@ masked by the policies anyway, via ``scan.ok_a``), so training rows stay finite.
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +45,47 @@ FEATURE_SET = "knotlab-features-v1"
 _COSTS = ("c1_map", "c2_bend_f", "c3_bend_g")
 _QUAD = tuple(f"{_COSTS[i]}*{_COSTS[j]}" for i in range(3) for j in range(i, 3))
 _MAX_MARGIN_POINTS = 40  # trajectory points per demo used for margins (subsampled evenly)
+_MEMO_STATES = 32  # scans (and their features) a featurizer keeps, by the cloud's exact bytes
+
+
+def cloud_digest(cloud_n3: np.ndarray) -> str:
+    """sha1 of a cloud's float64 bytes and shape: equal digests mean an identical cloud."""
+    arr = np.ascontiguousarray(np.asarray(cloud_n3, dtype=np.float64))
+    return hashlib.sha1(str(arr.shape).encode() + arr.tobytes()).hexdigest()
+
+
+class _ScanMemo:
+    """The last few states' scans and features, by cloud digest (thread-safe LRU).
+
+    A search scans every child it values, and the episode then scans the child it moved to
+    again; the app re-ranks a state it has shown. The scan is a pure function of the cloud
+    (for a fixed library and preset), so a hit returns the very same arrays.
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[str, list] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: str) -> list | None:
+        with self._lock:
+            item = self._items.get(key)
+            if item is None:
+                self.misses += 1
+                return None
+            self.hits += 1
+            self._items.move_to_end(key)
+            return item
+
+    def put(self, key: str, scan: ScanResult) -> list:
+        with self._lock:
+            item = self._items.setdefault(key, [scan, None])
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+            return item
 
 
 @dataclass(frozen=True)
@@ -120,6 +164,7 @@ class LibraryFeaturizer:
         self.library_hash = library.content_hash()
         self.observation = ObservationModel.of_library_metadata(library.metadata)
         self._clouds = library.clouds()
+        self._memo = _ScanMemo(_MEMO_STATES)
         self._steps_a = library.step_indices()
         self._phase_steps = tuple(int(k) for k in np.unique(self._steps_a))
         self._phase_onehot_ak = (self._steps_a[:, None] == np.array(self._phase_steps)).astype(
@@ -216,10 +261,25 @@ class LibraryFeaturizer:
         return observe(world, self.observation, noise=noise, seed=seed)
 
     def scan(self, cloud_n3: np.ndarray, timings: dict | None = None) -> ScanResult:
-        """Register the cloud against every demo (cached demo side)."""
+        """Register the cloud against every demo (cached demo side; a state seen lately is
+        not scanned again, unless ``timings`` asks for a measured scan)."""
+        if timings is not None:
+            return self._scan_now(cloud_n3, timings)
+        key = cloud_digest(cloud_n3)
+        item = self._memo.get(key)
+        if item is None:
+            item = self._memo.put(key, self._scan_now(cloud_n3, None))
+        return item[0]
+
+    def _scan_now(self, cloud_n3: np.ndarray, timings: dict | None) -> ScanResult:
         return self.registrar.scan(
             cloud_n3, self._clouds, key=self.library_hash, params=self.params, timings=timings
         )
+
+    @property
+    def memo_stats(self) -> tuple[int, int]:
+        """(hits, misses) of the recent-states memo."""
+        return self._memo.hits, self._memo.misses
 
     def warped_points(self, scan: ScanResult, points: list[np.ndarray]) -> list[np.ndarray]:
         """Each demo's points pushed through its own f_a (NaN rows where registration failed)."""
@@ -237,7 +297,18 @@ class LibraryFeaturizer:
         return self.features_from_scan(scan, cloud_n3), scan
 
     def features_from_scan(self, scan: ScanResult, cloud_n3: np.ndarray) -> np.ndarray:
-        """phi_ad from an existing scan of ``cloud_n3``."""
+        """phi_ad from an existing scan of ``cloud_n3`` (kept with the scan when it is the
+        memo's own; treat it as read-only)."""
+        item = self._memo.get(cloud_digest(cloud_n3))
+        if item is not None and item[0] is scan:
+            if item[1] is None:
+                phi = self._features_now(scan, cloud_n3)
+                phi.flags.writeable = False
+                item[1] = phi
+            return item[1]
+        return self._features_now(scan, cloud_n3)
+
+    def _features_now(self, scan: ScanResult, cloud_n3: np.ndarray) -> np.ndarray:
         ok = np.asarray(scan.ok_a, dtype=bool)
         if not ok.any():
             raise InvalidInputError("registration failed for every demo: no features")

@@ -8,9 +8,12 @@ Shape suffix: a = demos (actions).
 
 from __future__ import annotations
 
+import hashlib
 import re
 import time
 from abc import ABC, abstractmethod
+from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -19,7 +22,15 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
-from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.selection.expansion import (
+    ExpansionJob,
+    ExpansionResult,
+    ExpansionRunner,
+    SequentialRunner,
+    child_is_valued,
+    value_child,
+)
+from knotlab.core.selection.features import LibraryFeaturizer, cloud_digest
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 
@@ -97,12 +108,57 @@ class GreedyPolicy(Policy):
         return _best_of(demo_scores(ctx.scan, ctx.phi_ad, self.model))
 
 
+def snapshot_digest(snapshot) -> str:
+    """sha1 of a simulator snapshot's arrays and time: equal digests, the same world state."""
+    digest = hashlib.sha1(repr(snapshot.sim_time).encode())
+    for name in ("positions_l3", "quaternions_l4", "linear_velocities_l3", "angular_velocities_l3"):
+        digest.update(np.ascontiguousarray(getattr(snapshot, name), dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+class OutcomeMemo:
+    """Simulated expansions by (world, transferer, state, cloud, action), least recent dropped.
+
+    Restoring a snapshot and executing is bit-identical to the run that made the snapshot
+    (`RopeWorld`), and the transfer is a pure function of the cloud and demo, so an expansion
+    seen before has exactly the outcome it had: la2x5 simulates the chosen child's best
+    children, and the next decision starts from that child and would simulate them again.
+    """
+
+    def __init__(self, size: int = 64) -> None:
+        self.size = size
+        self._items: OrderedDict[tuple, ActionOutcome] = OrderedDict()
+        self.hits = 0
+
+    @staticmethod
+    def key(world, transferer, snapshot_key: str, cloud_key: str, action: int) -> tuple:
+        """The memo key of one expansion."""
+        return (id(world), id(transferer), snapshot_key, cloud_key, int(action))
+
+    def get(self, key: tuple) -> ActionOutcome | None:
+        """The stored outcome, or None."""
+        out = self._items.get(key)
+        if out is not None:
+            self.hits += 1
+            self._items.move_to_end(key)
+        return out
+
+    def put(self, key: tuple, outcome: ActionOutcome) -> None:
+        """Store an outcome (dropping the least recent past ``size``)."""
+        self._items[key] = outcome
+        self._items.move_to_end(key)
+        while len(self._items) > self.size:
+            self._items.popitem(last=False)
+
+
 @dataclass
 class _Node:
     snapshot: object
     cloud_n3: np.ndarray
     q_a: np.ndarray
     root_action: int  # -1 at the root
+    keys: tuple[str, str] = ("", "")  # (snapshot digest, cloud digest), for the memo
+    tree_id: int = 0  # its entry in the decision's tree (0 = the root)
 
 
 class LookaheadPolicy(Policy):
@@ -117,29 +173,67 @@ class LookaheadPolicy(Policy):
     actions that reached that level compete, so values of different depths (and signs) are never
     compared. Ties and the no-expansion case fall back to the root's Q. Children of the episode's
     last action are not valued (only a knot counts there), which saves a scan per expansion.
+
+    Where expansions run is the ``runner``'s business (`core.selection.expansion`): in this
+    process by default, or a level at a time in worker processes (the app); the choice and the
+    outcome are the same either way. Expansions already simulated (`OutcomeMemo`) are reused.
+    ``decision.info["tree"]`` lists every expansion: its node, parent, demo, value and stage.
     """
 
-    def __init__(self, model: QModel, depth: int = 1, width: int = 10) -> None:
+    def __init__(
+        self,
+        model: QModel,
+        depth: int = 1,
+        width: int = 10,
+        runner: ExpansionRunner | None = None,
+    ) -> None:
         if depth < 1 or width < 1:
             raise ValueError(f"lookahead needs depth >= 1 and width >= 1, got {depth}, {width}")
         self.model = model
         self.depth = depth
         self.width = width
         self.name = f"la{depth}x{width}"
+        self.runner: ExpansionRunner = runner or SequentialRunner()
+        self.memo = OutcomeMemo()
 
-    def _q(self, featurizer: LibraryFeaturizer, cloud_n3: np.ndarray) -> np.ndarray:
-        phi, scan = featurizer.features(cloud_n3)
-        return demo_scores(scan, phi, self.model)
+    def _run_level(
+        self, ctx: StepContext, nodes: list[_Node], actions: list[int], value: bool
+    ) -> Iterator[tuple[ExpansionResult, bool]]:
+        """(result, from the memo) per (node, action), in order; misses go to the runner."""
+        keys = [
+            OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)
+            for node, a in zip(nodes, actions, strict=True)
+        ]
+        known = [self.memo.get(k) for k in keys]
+        misses = [
+            ExpansionJob(node.snapshot, node.cloud_n3, a, value)
+            for node, a, out in zip(nodes, actions, known, strict=True)
+            if out is None
+        ]
+        fresh = self.runner.run(ctx.world, ctx.transferer, ctx.featurizer, self.model, misses)
+        for key, out in zip(keys, known, strict=True):
+            if out is None:
+                result = next(fresh)
+                self.memo.put(key, result.outcome)
+                yield result, False
+                continue
+            cloud = q = None
+            if value and not out.knot and child_is_valued(out):
+                ctx.world.restore(out.snapshot_after)
+                cloud, q = value_child(ctx.world, ctx.featurizer, self.model)
+            yield ExpansionResult(out, cloud, q), True
 
     def choose(self, ctx: StepContext) -> Decision:
         """Beam search from the current state; returns the best root action."""
         world = ctx.world
         root_snapshot = world.snapshot()
         root_q = demo_scores(ctx.scan, ctx.phi_ad, self.model)
-        frontier = [_Node(root_snapshot, ctx.cloud_n3, root_q, -1)]
+        root_keys = (snapshot_digest(root_snapshot), cloud_digest(ctx.cloud_n3))
+        frontier = [_Node(root_snapshot, ctx.cloud_n3, root_q, -1, root_keys)]
         backed: dict[int, tuple[int, float]] = {}  # root action -> (depth reached, value)
         root_outcomes: dict[int, ActionOutcome] = {}
-        expansions = 0
+        tree: list[dict] = []
+        counts = [0, 0]  # expansions, reused from the memo
         t0 = time.perf_counter()
         max_depth = min(self.depth, ctx.steps_left)
         try:
@@ -154,33 +248,44 @@ class LookaheadPolicy(Policy):
                         if np.isfinite(node.q_a[a])
                     ]
                 candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
+                chosen = candidates[: self.width]
+                # After the episode's last action only a knot counts: a non-knot child is a
+                # failure whatever it looks like, so its value is not worth a scan.
+                at_horizon = level + 1 >= ctx.steps_left
+                results = self._run_level(
+                    ctx,
+                    [frontier[i] for _, i, _ in chosen],
+                    [a for _, _, a in chosen],
+                    not at_horizon,
+                )
                 next_frontier = []
-                for _, node_i, a in candidates[: self.width]:
-                    node = frontier[node_i]
-                    world.restore(node.snapshot)
-                    outcome = apply_demo(world, ctx.transferer, node.cloud_n3, a)
-                    expansions += 1
+                for (_, node_i, a), (res, from_memo) in zip(chosen, results, strict=True):
+                    node, outcome = frontier[node_i], res.outcome
+                    counts[0] += 1
+                    counts[1] += from_memo
                     root_a = a if node.root_action < 0 else node.root_action
                     if node.root_action < 0:
                         root_outcomes[a] = outcome
+                    value = -np.inf if res.child_q_a is None else float(np.max(res.child_q_a))
+                    tree.append(
+                        {
+                            "node": len(tree) + 1,
+                            "parent": node.tree_id,
+                            "level": level + 1,
+                            "root_action": int(root_a),
+                            "action": int(a),
+                            "q": float(node.q_a[a]),
+                            "value": None if not np.isfinite(value) else value,
+                            "knot": bool(outcome.knot),
+                            "stage": int(outcome.stage),
+                            "failure": outcome.failure,
+                            "reused": bool(from_memo),
+                        }
+                    )
                     if outcome.knot:
                         return self._decide(
-                            root_a, root_q, backed, root_outcomes, expansions, t0, goal=True
+                            root_a, root_q, backed, root_outcomes, counts, t0, True, tree
                         )
-                    # After the episode's last action only a knot counts: a non-knot child is
-                    # a failure whatever it looks like, so its value is not worth a scan.
-                    at_horizon = level + 1 >= ctx.steps_left
-                    if (
-                        at_horizon
-                        or outcome.exploded
-                        or not np.all(np.isfinite(outcome.nodes_after_k3))
-                    ):
-                        value = -np.inf
-                        child_q = None
-                    else:
-                        child_cloud = ctx.featurizer.observe(world)
-                        child_q = self._q(ctx.featurizer, child_cloud)
-                        value = float(np.max(child_q))
                     depth_reached = level + 1
                     prev = backed.get(root_a)
                     if (
@@ -189,19 +294,40 @@ class LookaheadPolicy(Policy):
                         or (depth_reached == prev[0] and value > prev[1])
                     ):
                         backed[root_a] = (depth_reached, value)
-                    if child_q is not None and level + 1 < max_depth:
+                    if res.child_q_a is not None and level + 1 < max_depth:
+                        assert res.child_cloud_n3 is not None
+                        child_keys = (
+                            snapshot_digest(outcome.snapshot_after),
+                            cloud_digest(res.child_cloud_n3),
+                        )
                         next_frontier.append(
-                            _Node(outcome.snapshot_after, child_cloud, child_q, root_a)
+                            _Node(
+                                outcome.snapshot_after,
+                                res.child_cloud_n3,
+                                res.child_q_a,
+                                root_a,
+                                child_keys,
+                                len(tree),
+                            )
                         )
                 frontier = next_frontier
                 if not frontier:
                     break
         finally:
             world.restore(root_snapshot)
-        return self._decide(None, root_q, backed, root_outcomes, expansions, t0, goal=False)
+        return self._decide(None, root_q, backed, root_outcomes, counts, t0, False, tree)
 
-    def _decide(self, goal_action, root_q, backed, root_outcomes, expansions, t0, goal):
-        info = {"expansions": expansions, "goal_found": goal, "search_s": time.perf_counter() - t0}
+    def _decide(
+        self, goal_action, root_q, backed, root_outcomes, counts, t0, goal, tree=()
+    ) -> Decision:
+        expansions, reused = (counts, 0) if isinstance(counts, int) else counts
+        info = {
+            "expansions": expansions,
+            "reused_expansions": reused,
+            "goal_found": goal,
+            "search_s": time.perf_counter() - t0,
+            "tree": list(tree),
+        }
         if goal_action is not None:
             action = goal_action
         else:

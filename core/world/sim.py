@@ -132,6 +132,12 @@ class GripperParams:
             raise InvalidInputError("GripperParams: settle_time and rest_speed must be >= 0")
 
 
+# Where an execution's time goes: building the PyBullet world from the state record, moving
+# with no rope held (approach, lowering, lifting away), dragging with at least one gripper
+# holding a link, and settling after the release.
+EXECUTION_PHASES = ("rebuild", "approach", "drag", "settle")
+
+
 @dataclass(frozen=True)
 class ExecutionResult:
     """Outcome of one `RopeWorld.execute` call."""
@@ -145,6 +151,9 @@ class ExecutionResult:
     sim_time: float  # s simulated
     wall_time: float = field(default=0.0, compare=False)  # s of wall clock
     frames: ExecutionFrames | None = field(default=None, compare=False)  # when asked for
+    # Wall seconds and simulator steps per phase (`EXECUTION_PHASES`), for the speed benches.
+    phase_s: dict[str, float] = field(default_factory=dict, compare=False)
+    phase_steps: dict[str, int] = field(default_factory=dict, compare=False)
 
     @property
     def failure_kind(self) -> FailureKind | None:
@@ -208,10 +217,24 @@ def _quat_z_to(dirs_l3: np.ndarray) -> np.ndarray:
     return np.concatenate([axis * np.sin(half)[:, None], np.cos(half)[:, None]], axis=1)
 
 
+def _quat_z_axes(quats_l4: np.ndarray) -> np.ndarray:
+    """The third column of `_quat_to_axes` (each link's axis), (L, 3), by the same arithmetic.
+
+    The health check runs every few simulator steps and needs only the axes; building the full
+    matrices there took a sixth of an execution's wall time.
+    """
+    x, y, z, w = quats_l4[:, 0], quats_l4[:, 1], quats_l4[:, 2], quats_l4[:, 3]
+    out = np.empty((len(quats_l4), 3))
+    out[:, 0] = 2 * (x * z + y * w)
+    out[:, 1] = 2 * (y * z - x * w)
+    out[:, 2] = 1 - 2 * (x * x + y * y)
+    return out
+
+
 def _link_ends(state: SimSnapshot) -> tuple[np.ndarray, np.ndarray]:
     """World positions of each link's lower (-z) and upper (+z) pivot, (L, 3) each."""
     half = 0.5 * state.params.link_length
-    axis_l3 = _quat_to_axes(state.quaternions_l4)[:, :, 2]
+    axis_l3 = _quat_z_axes(state.quaternions_l4)
     return state.positions_l3 - half * axis_l3, state.positions_l3 + half * axis_l3
 
 
@@ -578,6 +601,9 @@ class RopeWorld:
                 rec.finished = True
             return ExecutionResult(False, "exploded", (), (), math.inf, 0, 0.0, 0.0)
         self._build(state)
+        phase_s = dict.fromkeys(EXECUTION_PHASES, 0.0)
+        phase_steps = dict.fromkeys(EXECUTION_PHASES, 0)
+        phase_s["rebuild"] = time.perf_counter() - wall0
         t0 = self._sim_time
         prm, grp = self.params, self.gripper
         pos_gt3, closed_gt = traj.positions_gt3, traj.closed_gt
@@ -614,6 +640,8 @@ class RopeWorld:
                 float(max(0.0, -delta_g3[:, 2].min())) / grp.max_descent_speed,
             )
             n_steps = math.ceil(duration / prm.timestep - 1e-9)
+            phase = "drag" if held[0] is not None or held[1] is not None else "approach"
+            seg0, steps0 = time.perf_counter(), steps
             for k in range(1, n_steps + 1):
                 for g in range(2):
                     hold = held[g]
@@ -637,6 +665,8 @@ class RopeWorld:
                     since_check = 0
                     if failure:
                         break
+            phase_s[phase] += time.perf_counter() - seg0
+            phase_steps[phase] += steps - steps0
             if failure:
                 break
             apply_flags(t)
@@ -644,7 +674,10 @@ class RopeWorld:
             self._release(held, g)
         if failure is None:
             at_rest = (rec, t0, pos_gt3[:, -1]) if rec is not None else None
+            settle0 = time.perf_counter()
             n, failure, stretch = self._settle_steps(settle, early_stop=True, frames=at_rest)
+            phase_s["settle"] = time.perf_counter() - settle0
+            phase_steps["settle"] = n
             steps += n
             max_stretch = max(max_stretch, stretch)
         if failure in ("exploded", "stretch"):
@@ -666,6 +699,8 @@ class RopeWorld:
             sim_time=self._sim_time - t0,
             wall_time=time.perf_counter() - wall0,
             frames=None if rec is None else rec.frames(),
+            phase_s=phase_s,
+            phase_steps=phase_steps,
         )
 
     def _release(self, held: list, g: int) -> None:

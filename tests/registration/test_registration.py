@@ -175,14 +175,14 @@ def test_disk_and_memory_cache_give_identical_scans(tmp_path) -> None:
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_kernel_exp_matches_numpy(dtype: str) -> None:
-    from knotlab.core.registration.kernel import _exp_neg_row, kernel_constants
+    from knotlab.core.registration.kernel import _exp_neg_row, exp_bits_constants, kernel_constants
 
     dt = np.dtype(dtype)
     s = np.concatenate([np.linspace(0, 100, 997), np.random.default_rng(0).uniform(0, 90, 500)])
     s = s.astype(dt)
     p = np.empty((1, len(s)), dt)
     bits = np.empty(len(s), np.int32 if dt == np.float32 else np.int64)
-    bias_shift = (127, 23) if dt == np.float32 else (1023, 52)
+    bias_shift = exp_bits_constants(dt)
     _exp_neg_row(
         s.copy(), p, 0, bits, bits.view(dt), *bias_shift, kernel_constants(dt, SCAN), len(s)
     )
