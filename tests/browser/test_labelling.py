@@ -244,6 +244,12 @@ def test_inspect_shows_the_three_policies_plot_and_registration(tabs):
     wait_until(lambda: view.search_progress >= 1.0, 180, "the lookahead search")
     assert view.choices.lookahead is not None and view.search_error is None
     expect(page.get_by_text("root candidate")).to_be_visible(timeout=20_000)
+    # The whole tree: one line per expansion, in the browser.
+    tree = view.choices.lookahead_info["tree"]
+    assert len(tree) == view.choices.lookahead_info["expansions"] > 0
+    expect(page.get_by_text("The search tree")).to_be_visible(timeout=20_000)
+    page.get_by_text("The search tree").scroll_into_view_if_needed()
+    tab.screenshot("inspect_tree")
     page.locator("label", has_text="Show A's registration in 3D").click()
     wait_until(lambda: _scene_has(page, "/inspect/warped"), 10, "registration drawn")
     assert _scene_has(page, "/inspect/correspondence")
