@@ -5,36 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.explain import search_tree_lines
-from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.policies import LookaheadPolicy, StepContext
 from knotlab.core.selection.qmodel import QModel
-from knotlab.core.world.sim import RopeWorld
-from tests.minilib import mini_library
 
 pytestmark = pytest.mark.xdist_group("minilib")
-
-
-@pytest.fixture(scope="module")
-def lib():
-    return mini_library(2)
-
-
-@pytest.fixture(scope="module")
-def featurizer(lib):
-    return LibraryFeaturizer(lib)
-
-
-@pytest.fixture(scope="module")
-def transferer(lib):
-    return DemoTransferer(lib)
-
-
-@pytest.fixture
-def world():
-    with RopeWorld() as w:
-        yield w
 
 
 def _ctx(world, featurizer, transferer, nodes=None, snapshot=None):

@@ -8,8 +8,7 @@ import pytest
 from knotlab.core.errors import KnotlabError
 from knotlab.core.experiments.episode import run_episode
 from knotlab.core.experiments.labeller import OracleParams, label_task
-from knotlab.core.registration.planner import DemoTransferer, TransferPlan
-from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.registration.planner import TransferPlan
 from knotlab.core.selection.learner import MaxMarginQLearner
 from knotlab.core.selection.policies import (
     GreedyPolicy,
@@ -21,31 +20,9 @@ from knotlab.core.selection.policies import (
     make_policy,
 )
 from knotlab.core.selection.qmodel import QModel
-from knotlab.core.world.sim import RopeWorld
-from tests.minilib import mini_executions, mini_library
+from tests.minilib import mini_executions
 
 pytestmark = pytest.mark.xdist_group("minilib")
-
-
-@pytest.fixture(scope="module")
-def lib():
-    return mini_library(2)
-
-
-@pytest.fixture(scope="module")
-def featurizer(lib):
-    return LibraryFeaturizer(lib)
-
-
-@pytest.fixture(scope="module")
-def transferer(lib):
-    return DemoTransferer(lib)
-
-
-@pytest.fixture
-def world():
-    with RopeWorld() as w:
-        yield w
 
 
 def _ctx(world, featurizer, transferer, nodes, step=0):
