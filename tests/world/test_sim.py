@@ -228,3 +228,23 @@ def test_render_topdown_writes_a_png(world, tmp_path) -> None:
     out = world.render_topdown(tmp_path / "rope.png", size=200)
     data = out.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
+
+
+def test_link_axes_of_the_health_check_equal_the_full_rotation_bit_for_bit() -> None:
+    from knotlab.core.world.sim import _quat_to_axes, _quat_z_axes
+
+    q = np.random.default_rng(3).normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    # Bit for bit: the stretch check sees the same numbers, so executions end the same way.
+    np.testing.assert_array_equal(_quat_z_axes(q), _quat_to_axes(q)[:, :, 2])
+
+
+def test_an_execution_reports_its_time_and_steps_per_phase(world) -> None:
+    from knotlab.core.world.knot_sequence import overhand_sequence
+    from knotlab.core.world.sim import EXECUTION_PHASES
+
+    result = world.execute(overhand_sequence()[0])  # the fixture's rope is the straight one
+    assert set(result.phase_s) == set(EXECUTION_PHASES) == set(result.phase_steps)
+    assert sum(result.phase_steps.values()) == result.sim_steps
+    assert result.phase_steps["drag"] > 0 and result.phase_s["rebuild"] > 0
+    assert sum(result.phase_s.values()) <= result.wall_time + 1e-6
