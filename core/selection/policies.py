@@ -233,7 +233,7 @@ class LookaheadPolicy(Policy):
         backed: dict[int, tuple[int, float]] = {}  # root action -> (depth reached, value)
         root_outcomes: dict[int, ActionOutcome] = {}
         tree: list[dict] = []
-        counts = [0, 0]  # expansions, reused from the memo
+        expansions = reused = 0  # reused: taken from the memo, not simulated
         t0 = time.perf_counter()
         max_depth = min(self.depth, ctx.steps_left)
         try:
@@ -261,8 +261,8 @@ class LookaheadPolicy(Policy):
                 next_frontier = []
                 for (_, node_i, a), (res, from_memo) in zip(chosen, results, strict=True):
                     node, outcome = frontier[node_i], res.outcome
-                    counts[0] += 1
-                    counts[1] += from_memo
+                    expansions += 1
+                    reused += from_memo
                     root_a = a if node.root_action < 0 else node.root_action
                     if node.root_action < 0:
                         root_outcomes[a] = outcome
@@ -284,8 +284,9 @@ class LookaheadPolicy(Policy):
                     )
                     if outcome.knot:
                         return self._decide(
-                            root_a, root_q, backed, root_outcomes, counts, t0, True, tree
-                        )
+                            root_a, root_q, backed, root_outcomes, expansions, t0, True,
+                            reused, tree,
+                        )  # fmt: skip
                     depth_reached = level + 1
                     prev = backed.get(root_a)
                     if (
@@ -315,12 +316,13 @@ class LookaheadPolicy(Policy):
                     break
         finally:
             world.restore(root_snapshot)
-        return self._decide(None, root_q, backed, root_outcomes, counts, t0, False, tree)
+        return self._decide(
+            None, root_q, backed, root_outcomes, expansions, t0, False, reused, tree
+        )
 
     def _decide(
-        self, goal_action, root_q, backed, root_outcomes, counts, t0, goal, tree=()
+        self, goal_action, root_q, backed, root_outcomes, expansions, t0, goal, reused=0, tree=()
     ) -> Decision:
-        expansions, reused = (counts, 0) if isinstance(counts, int) else counts
         info = {
             "expansions": expansions,
             "reused_expansions": reused,
