@@ -114,10 +114,14 @@ class PoolRunner:
     def run(
         self, world, transferer, featurizer, model: QModel, jobs: Sequence[ExpansionJob]
     ) -> Iterator[ExpansionResult]:
-        """Submit every job now; yield the results in the jobs' order."""
+        """Submit every job now (not when the first result is asked for: the search may value
+        memo hits first); yield the results in the jobs' order."""
         futures = [
             self.pool._pool.submit(_expand_job, self.pool.library_path, model, job) for job in jobs
         ]
+        return self._in_order(futures)
+
+    def _in_order(self, futures: list) -> Iterator[ExpansionResult]:
         try:
             for future in futures:
                 result = future.result()
