@@ -106,6 +106,7 @@ def _run(args: argparse.Namespace) -> int:
         margin_scale=args.margin_scale,
         landmarks=args.landmarks,
         select=SelectBy(args.select),
+        rank_features=args.rank_features,
         validation_fraction=args.validation_fraction,
         refit_all=args.refit_all,
         random_state=args.seed,
@@ -221,6 +222,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=(50, 20),
         help="landmark states sampled from the training split: LABELLED,DEAD_ENDS "
         "(default 50,20 as in the original; 0,0 for none)",
+    )
+    p.add_argument(
+        "--rank-features",
+        action="store_true",
+        help="add where each demo stands in the state's registration-cost order (relative cost, "
+        "rank one-hots) to the features",
     )
     p.add_argument(
         "--out",

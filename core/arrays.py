@@ -5,6 +5,8 @@ One place for these checks, so every module names a bad input the same way.
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
@@ -41,3 +43,9 @@ def finite_matrix(name: str, arr: np.ndarray) -> np.ndarray:
         bad = np.argwhere(~np.isfinite(a))[0]
         raise InvalidInputError(f"{name} has a non-finite value at row {bad[0]}, column {bad[1]}")
     return a
+
+
+def cloud_digest(cloud_n3: np.ndarray) -> str:
+    """sha1 of a cloud's float64 bytes and shape: equal digests mean an identical cloud."""
+    arr = np.ascontiguousarray(np.asarray(cloud_n3, dtype=np.float64))
+    return hashlib.sha1(str(arr.shape).encode() + arr.tobytes()).hexdigest()

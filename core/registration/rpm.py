@@ -490,11 +490,20 @@ def register(
     demo_cloud: np.ndarray, scene_cloud: np.ndarray, params: RegistrationParams = EXACT
 ) -> Registration:
     """Bidirectional TPS-RPM of one demo cloud onto one scene cloud (a batch of one)."""
-    demo_arr = clean_cloud(demo_cloud, "demo cloud", params.max_points)
-    demo = demo_side([demo_arr], params)
+    demo = one_demo_side(demo_cloud, params)
+    return register_sides(demo, scene_side(scene_cloud, params), params)
+
+
+def one_demo_side(demo_cloud: np.ndarray, params: RegistrationParams) -> CloudSide:
+    """The factorised side of one demo cloud (what `register` builds); raises if unusable."""
+    demo = demo_side([clean_cloud(demo_cloud, "demo cloud", params.max_points)], params)
     if not demo.ok_a[0]:
         raise SolverError(f"demo cloud: {demo.reason_a[0]}")
-    scene = scene_side(scene_cloud, params)
+    return demo
+
+
+def register_sides(demo: CloudSide, scene: CloudSide, params: RegistrationParams) -> Registration:
+    """`register` on sides already factorised (`one_demo_side`, `scene_side`): same result."""
     result = run_chunks(demo, scene, params, chunk_size=1, n_workers=1, keep_corr=True)
     return result.registration(0)
 

@@ -18,6 +18,11 @@ For each demo a, from the bidirectional registration of its cloud onto the scene
   same for every action, so it only shapes the value: it lets V(s') tell a state the expert went
   on from apart from a dead end, which is what lookahead compares;
 - e_a: a one-hot of the demo (a per-demo prior: some demos transfer far better than others).
+- with ``rank_features`` (issue 12, item 4): where demo a stands among the state's demos by
+  registration cost: nn_rel = cost(a) / min cost - 1 (scale-free), one-hots for ranks 0, 1 and 2,
+  and min(rank, 10) / 10. The expert was shown candidates in cost order and took the first that
+  worked (facts section 11), so the rank is what the labels are made of; a linear Q on the raw
+  costs plus 148 per-demo offsets cannot express "the cheapest one" within a state.
 Not repeated from the original (facts section 14): positive-exponent gram features, indicators
 that are never cleared, c2-only "bend" features labelled c2 + c3.
 
@@ -27,7 +32,6 @@ masked by the policies anyway, via ``scan.ok_a``), so training rows stay finite.
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -35,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from knotlab.core.arrays import cloud_digest
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
@@ -44,14 +49,11 @@ from knotlab.core.world.observation import ObservationModel, observe
 FEATURE_SET = "knotlab-features-v1"
 _COSTS = ("c1_map", "c2_bend_f", "c3_bend_g")
 _QUAD = tuple(f"{_COSTS[i]}*{_COSTS[j]}" for i in range(3) for j in range(i, 3))
+_RANK = ("nn_rel", "nn_rank_0", "nn_rank_1", "nn_rank_2", "nn_rank_10")
+_RANK_INDICATOR = (False, True, True, True, False)
+_RANK_CAP = 10  # ranks beyond this all look alike (the oracle tries 10 candidates)
 _MAX_MARGIN_POINTS = 40  # trajectory points per demo used for margins (subsampled evenly)
 _MEMO_STATES = 32  # scans (and their features) a featurizer keeps, by the cloud's exact bytes
-
-
-def cloud_digest(cloud_n3: np.ndarray) -> str:
-    """sha1 of a cloud's float64 bytes and shape: equal digests mean an identical cloud."""
-    arr = np.ascontiguousarray(np.asarray(cloud_n3, dtype=np.float64))
-    return hashlib.sha1(str(arr.shape).encode() + arr.tobytes()).hexdigest()
 
 
 class _ScanMemo:
@@ -101,10 +103,12 @@ class FeatureSpec:
     phase_temperature: float
     landmark_hash: str | None = None
     observation_model: str = ObservationModel.CLOUD.value
+    rank_features: bool = False
 
     def to_dict(self) -> dict:
-        """JSON-able form (what QModel stores)."""
-        return {
+        """JSON-able form (what QModel stores); rank_features only when on, so models made
+        before it existed keep their spec (and content hash)."""
+        out = {
             "feature_set": self.feature_set,
             "library_hash": self.library_hash,
             "action_keys": list(self.action_keys),
@@ -115,6 +119,9 @@ class FeatureSpec:
             "landmark_hash": self.landmark_hash,
             "observation_model": self.observation_model,
         }
+        if self.rank_features:
+            out["rank_features"] = True
+        return out
 
 
 def _grasp_points(library: DemoLibrary) -> list[np.ndarray]:
@@ -154,6 +161,7 @@ class LibraryFeaturizer:
         params: RegistrationParams = SCAN,
         phase_temperature: float = 0.25,
         landmarks: Landmarks | None = None,
+        rank_features: bool = False,
     ) -> None:
         if not phase_temperature > 0:
             raise InvalidInputError(f"phase_temperature must be > 0, got {phase_temperature}")
@@ -173,6 +181,7 @@ class LibraryFeaturizer:
         self._grasp_pts = _grasp_points(library)
         self._margin_pts = _margin_points(library)
         self.landmarks = landmarks if landmarks is not None and len(landmarks) else None
+        self.rank_features = bool(rank_features)
         self._landmark_key = (
             f"landmarks-{self.landmarks.content_hash()}" if self.landmarks is not None else None
         )
@@ -188,15 +197,20 @@ class LibraryFeaturizer:
             + ["grasp_dist_m"]
             + [f"phase_{k}" for k in self._phase_steps]
             + ["phase_match"]
+            + list(_RANK if self.rank_features else ())
             + landmark_names
             + [f"demo[{key}]" for key in library.keys]
         )
-        # Columns left unstandardised by the learner: the one-hots, and the landmark softmax
-        # weights (in [0, 1]; most are ~0 for most states, so standardising them would blow a
-        # rarely-near landmark up to hundreds and leave the QP badly conditioned).
+        # Columns left unstandardised by the learner: the one-hots (demo, rank), and the landmark
+        # softmax weights (in [0, 1]; most are ~0 for most states, so standardising them would
+        # blow a rarely-near landmark up to hundreds and leave the QP badly conditioned).
         indicator = [False] * (len(names) - n - len(landmark_names)) + [True] * (
             len(landmark_names) + n
         )
+        if self.rank_features:
+            first = names.index(_RANK[0])
+            for offset, is_onehot in enumerate(_RANK_INDICATOR):
+                indicator[first + offset] = is_onehot
         self._spec = FeatureSpec(
             FEATURE_SET,
             self.library_hash,
@@ -207,6 +221,7 @@ class LibraryFeaturizer:
             self.phase_temperature,
             self.landmarks.content_hash() if self.landmarks is not None else None,
             self.observation.value,
+            self.rank_features,
         )
 
     @classmethod
@@ -219,6 +234,7 @@ class LibraryFeaturizer:
             registrar=registrar,
             phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
             landmarks=getattr(model, "landmarks", None),
+            rank_features=bool(model.feature_spec.get("rank_features", False)),
         )
         model_obs = ObservationModel.parse(
             model.feature_spec.get("observation_model", ObservationModel.CLOUD.value)
@@ -326,6 +342,8 @@ class LibraryFeaturizer:
         phase_ak = np.broadcast_to(phase_k, (self.n_actions, phase_k.size))
         match = self._phase_onehot_ak @ phase_k
         columns = [c, quad, grasp, phase_ak, match]
+        if self.rank_features:
+            columns.append(rank_columns(scan.nn_cost_a))
         if self.landmarks is not None:
             near_l = self.landmark_weights(cloud_n3)
             columns.append(np.broadcast_to(near_l, (self.n_actions, near_l.size)))
@@ -369,6 +387,26 @@ class LibraryFeaturizer:
         m[~np.isfinite(m)] = finite_max  # a failed demo is as wrong as the most different one
         m[expert_action] = 0.0
         return m
+
+
+def rank_columns(cost_a: np.ndarray) -> np.ndarray:
+    """(A, 5): cost / min cost - 1, one-hots of cost ranks 0, 1, 2, and min(rank, 10) / 10.
+
+    Failed demos (non-finite cost) rank last and get the worst finite relative cost; ties keep
+    the lower demo index first (stable), as `rank_order` does.
+    """
+    cost = np.asarray(cost_a, dtype=float)
+    finite = np.isfinite(cost)
+    if not finite.any():
+        raise InvalidInputError("registration failed for every demo: no rank features")
+    rank = np.empty(cost.size)
+    rank[np.argsort(np.where(finite, cost, np.inf), kind="stable")] = np.arange(cost.size)
+    c_min = max(cost[finite].min(), 1e-12)
+    rel = np.where(finite, cost / c_min - 1.0, np.nan)
+    rel[~finite] = rel[finite].max()
+    return np.column_stack(
+        [rel, rank == 0, rank == 1, rank == 2, np.minimum(rank, _RANK_CAP) / _RANK_CAP]
+    ).astype(float)
 
 
 def _soft_nearest(cost_a: np.ndarray, temperature: float) -> np.ndarray:

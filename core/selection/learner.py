@@ -49,6 +49,9 @@ class LabelledState:
     margins_a: np.ndarray  # (A,) metres, m(a*, a); 0 at a*
     execution: int = 0  # which execution it came from
     step: int = 0  # step index within that execution
+    # Actions known to do as well as the expert's here (tried in simulation): no margin row
+    # against them, since the label does not prefer the expert's demo over them.
+    also_good_a: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         phi = finite_matrix("phi_ad", self.phi_ad)
@@ -65,6 +68,13 @@ class LabelledState:
             )
         object.__setattr__(self, "phi_ad", phi)
         object.__setattr__(self, "margins_a", margins)
+        if self.also_good_a is not None:
+            good = np.asarray(self.also_good_a, dtype=bool)
+            if good.shape != (phi.shape[0],):
+                raise InvalidInputError(
+                    f"also_good_a must have shape ({phi.shape[0]},), got {good.shape}"
+                )
+            object.__setattr__(self, "also_good_a", good)
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,6 +263,8 @@ class MaxMarginQLearner:
             phi = std(s.phi_ad)
             expert_phi[i] = phi[s.expert_action]
             others = np.arange(phi.shape[0]) != s.expert_action
+            if s.also_good_a is not None:
+                others &= ~s.also_good_a
             rows.append(phi[others] - phi[s.expert_action])
             rhs.append(kappa * s.margins_a[others])
             owner.append(np.full(int(others.sum()), i))

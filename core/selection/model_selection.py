@@ -115,15 +115,15 @@ def ranking_metrics(model: QModel, data: TrainingData) -> dict:
 def _build_featurizer(key: tuple):
     from knotlab.core.selection.features import LibraryFeaturizer
 
-    library, landmarks = key
-    return LibraryFeaturizer(library, landmarks=landmarks)
+    library, landmarks, rank_features = key
+    return LibraryFeaturizer(library, landmarks=landmarks, rank_features=rank_features)
 
 
 _FEATURIZER = PerProcess(_build_featurizer)  # this process's featurizer (set by the initializer)
 
 
-def _init_featurizer(library, landmarks=None) -> None:
-    _FEATURIZER.get((library, landmarks))
+def _init_featurizer(library, landmarks=None, rank_features: bool = False) -> None:
+    _FEATURIZER.get((library, landmarks, rank_features))
 
 
 def _featurize(execution: LabelledExecution) -> TrainingData | str:
@@ -143,6 +143,7 @@ def featurize_executions(
     workers: int | None = None,
     progress: bool = True,
     landmarks=None,
+    rank_features: bool = False,
 ) -> tuple[list[TrainingData | None], list[str]]:
     """Per-execution training data (None where unusable) and the warnings about those."""
     from knotlab.core.parallel import map_processes
@@ -151,7 +152,7 @@ def featurize_executions(
         _featurize,
         list(executions),
         workers=workers,
-        initializer=partial(_init_featurizer, library, landmarks),
+        initializer=partial(_init_featurizer, library, landmarks, rank_features),
         desc="featurising labelled states",
         progress=progress,
     )
@@ -175,7 +176,7 @@ class FeatureCache:
     """
 
     def __init__(self) -> None:
-        self._parts: dict[tuple[str, str | None, str], TrainingData | str] = {}
+        self._parts: dict[tuple[str, str | None, bool, str], TrainingData | str] = {}
 
     def __len__(self) -> int:
         return len(self._parts)
@@ -188,11 +189,12 @@ class FeatureCache:
         landmarks=None,
         workers: int | None = None,
         progress: bool = True,
+        rank_features: bool = False,
     ) -> tuple[list[TrainingData | None], list[str]]:
         """Like `featurize_executions`, featurising only executions not seen before."""
         lm_hash = landmarks.content_hash() if landmarks is not None and len(landmarks) else None
         lib_hash = library.content_hash()
-        keys = [(lib_hash, lm_hash, ex.execution_id) for ex in executions]
+        keys = [(lib_hash, lm_hash, rank_features, ex.execution_id) for ex in executions]
         todo = {k: ex for k, ex in zip(keys, executions, strict=True) if k not in self._parts}
         if todo:
             parts, warnings = featurize_executions(
@@ -201,6 +203,7 @@ class FeatureCache:
                 workers=workers,
                 progress=progress,
                 landmarks=landmarks,
+                rank_features=rank_features,
             )
             for k, part, ex in zip(todo, parts, todo.values(), strict=True):
                 self._parts[k] = part if part is not None else _skip_reason(warnings, ex)
@@ -255,6 +258,7 @@ class QModelSearch:
     margin_scale: float = 1.0
     landmarks: tuple[int, int] = (50, 20)  # labelled, dead-end landmark states (0, 0 = none)
     select: SelectBy = SelectBy.TOP1
+    rank_features: bool = False  # the cost-rank columns of `LibraryFeaturizer` (issue 12)
     validation_fraction: float = 0.2
     refit_all: bool = False
     random_state: int = 0
@@ -300,6 +304,7 @@ class QModelSearch:
             workers=self.workers,
             progress=self.progress,
             landmarks=landmarks,
+            rank_features=self.rank_features,
         )
         self.featurize_s_ = time.perf_counter() - t0
         for w in warnings:
@@ -312,7 +317,9 @@ class QModelSearch:
         val_data = merge_training_data(val_parts) if val_parts else None
         if val_data is not None and not val_data.states:
             val_data = None  # held-out executions with dead ends only: nothing to rank
-        featurizer = LibraryFeaturizer(library, landmarks=landmarks)
+        featurizer = LibraryFeaturizer(
+            library, landmarks=landmarks, rank_features=self.rank_features
+        )
         sweep: list[SweepPoint] = []
         for C in self.C:
             for D in self.D:
@@ -353,6 +360,7 @@ class QModelSearch:
             "refit_all": refitted,
             "validation": best.validation,
             "select": self.select.value,
+            "rank_features": self.rank_features,
             "landmarks": {
                 "labelled": self.landmarks[0],
                 "dead_end": self.landmarks[1],

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from knotlab.core.arrays import cloud_digest
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
@@ -30,7 +31,7 @@ from knotlab.core.selection.expansion import (
     child_is_valued,
     value_child,
 )
-from knotlab.core.selection.features import LibraryFeaturizer, cloud_digest
+from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 

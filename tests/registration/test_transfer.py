@@ -82,3 +82,26 @@ def test_degenerate_jacobian_raises() -> None:
     m = np.zeros((1, 3, 3))
     with pytest.raises(InvalidInputError, match="approach axis"):
         orthonormalise_keep_z(m)
+
+
+def test_transferer_cached_sides_give_the_fresh_registration_bit_for_bit() -> None:
+    """The transferer keeps factorised demo and scene sides; a reused side changes nothing."""
+    from knotlab.core.registration import register
+    from knotlab.core.registration.planner import DemoTransferer
+    from tests.minilib import mini_library
+
+    lib = mini_library(2)
+    scene = lib[1].pre_cloud_n3 + np.array([0.01, -0.02, 0.0])
+    cached = DemoTransferer(lib)
+    first = [cached.plan(scene, a) for a in range(len(lib))]
+    again = [cached.plan(scene, a) for a in range(len(lib))]  # both sides from the caches
+    for a, (p1, p2) in enumerate(zip(first, again, strict=True)):
+        fresh = register(lib[a].pre_cloud_n3, scene, cached.params)
+        assert p1.ok and p2.ok
+        assert np.array_equal(p1.trajectory.positions_gt3, p2.trajectory.positions_gt3)
+        assert np.array_equal(p1.trajectory.rotations_gt33, p2.trajectory.rotations_gt33)
+        assert p1.registration.costs == fresh.costs == p2.registration.costs
+        assert np.array_equal(p2.registration.f.evaluate(scene), fresh.f.evaluate(scene))
+        assert np.array_equal(p2.registration.corr_nm, fresh.corr_nm)
+    bad = cached.plan(np.full((5, 3), np.nan), 0)  # a bad scene: a failed plan, not a raise
+    assert not bad.ok and "registration" in (bad.failure or "")
