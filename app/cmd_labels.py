@@ -1,4 +1,5 @@
-"""`knotlab labels export|import`: move labels between databases as JSONL or CSV files."""
+"""`knotlab labels export|import|tries`: move labels between databases as JSONL or CSV files,
+and try the candidates of labelled states in simulation (richer labels for training)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,13 @@ import argparse
 import sys
 from typing import Literal, cast
 
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import (
+    WORKERS,
+    add_db_argument,
+    add_no_progress_argument,
+    db_url,
+    integer,
+)
 
 LabelFormat = Literal["jsonl", "csv"]
 FORMATS: tuple[LabelFormat, ...] = ("jsonl", "csv")
@@ -65,6 +72,38 @@ def _import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tries(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from knotlab.app import defaults
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.experiments.tries import try_candidates, try_jobs
+    from knotlab.core.selection.tries import read_tries
+    from knotlab.labeling_db.interchange import read_labels
+
+    executions = [item.execution for item in read_labels(args.labels)]
+    library = DemoLibrary.load(args.library or defaults.LIBRARY_PATH)
+    out = Path(args.out)
+    # Resumable: states already in OUT are kept and skipped (a torn last line is refused by
+    # read_tries, naming it, rather than silently dropped).
+    done = set(read_tries(out)) if out.exists() else set()
+    jobs = try_jobs(executions, args.top, done)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("a", encoding="utf-8") as fh:
+        for rec in try_candidates(
+            jobs, library, workers=args.workers, progress=not args.no_progress
+        ):
+            fh.write(json.dumps(rec.to_dict()) + "\n")
+            fh.flush()
+    print(
+        f"tried the {args.top} cheapest candidates of {len(jobs)} states "
+        f"({len(done)} already in {out})",
+        file=sys.stderr,
+    )
+    return 0
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `knotlab labels ...` to the command line."""
     labels = subparsers.add_parser("labels", help="export or import labels (JSONL or CSV)")
@@ -91,6 +130,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_db_argument(p)
     p.set_defaults(func=_import)
+    p = sub.add_parser(
+        "tries",
+        help="try the cheapest candidates of every labelled state once in simulation "
+        "(for `knotlab train --tries`)",
+    )
+    p.add_argument("--labels", required=True, help="labels file (.jsonl or .csv)")
+    p.add_argument("--library", default=None, help="demo library (default: the shipped one)")
+    p.add_argument("--top", type=integer(1), default=5, help="candidates tried per state (5)")
+    p.add_argument("--out", required=True, help="JSONL file to append to (resumed if it exists)")
+    p.add_argument("--workers", type=WORKERS, default=None, help="processes (default: cores)")
+    add_no_progress_argument(p)
+    p.set_defaults(func=_tries)
     from knotlab.app.cmd_agreement import register_agreement
 
     register_agreement(sub)

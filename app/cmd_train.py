@@ -76,6 +76,7 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.selection.model_selection import QModelSearch, SelectBy
+    from knotlab.core.selection.tries import read_tries
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
@@ -107,6 +108,7 @@ def _run(args: argparse.Namespace) -> int:
         landmarks=args.landmarks,
         select=SelectBy(args.select),
         rank_features=args.rank_features,
+        tries=read_tries(args.tries) if args.tries else None,
         validation_fraction=args.validation_fraction,
         refit_all=args.refit_all,
         random_state=args.seed,
@@ -133,7 +135,11 @@ def _run(args: argparse.Namespace) -> int:
                 f"{v['mean_expert_rank']:13.2f}  {v['value_auc']:9.3f}  "
                 f"{point.model.metrics['train_top1']:11.3f}{mark}"
             )
-    info = {"labels": args.labels or (args.db or default_db_url()), **search.info_}
+    info = {
+        "labels": args.labels or (args.db or default_db_url()),
+        "tries": args.tries,
+        **search.info_,
+    }
     final = dataclasses.replace(final, metrics={**final.metrics, "training_run": info})
     if out_path is None:  # never the shipped default: a new file named by the model's hash
         out_path = defaults.MODELS_DIR / f"model-{final.content_hash()}.npz"
@@ -228,6 +234,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="add where each demo stands in the state's registration-cost order (relative cost, "
         "rank one-hots) to the features",
+    )
+    p.add_argument(
+        "--tries",
+        default=None,
+        help="tried candidates of the labelled states (`knotlab labels tries`): no margin row "
+        "against a demo that advanced as well as the label's, a full one against one that did not",
     )
     p.add_argument(
         "--out",

@@ -13,9 +13,14 @@ Prints a table (successes, Wilson 95 %, paired wins and losses against NN and ag
 features) and, with ``--json``, one JSON object as the last line. Resumable: episodes already in
 OUT/outcomes.jsonl are not rerun. Training starts only; never the test set.
 
+Variants: base (the shipped features), rank (plus the cost-rank columns), and with "+floor" or
+"+tries" the tried candidates of `knotlab labels tries` (results/tries_main.jsonl): "+floor" only
+raises the margin of tried demos that did not advance; "+tries" also drops the rows against the
+ones that did, as `knotlab train --tries` does.
+
 Usage: .venv/bin/python bench/greedy_lever.py [--labels results/labels_oracle_main.jsonl]
-       [--variants base,rank] [--folds 5] [--C 1000] [--D 10] [--out runs/greedy_lever]
-       [--workers 2] [--json]
+       [--variants base,rank,base+floor,rank+floor,base+tries] [--folds 5] [--C 1000] [--D 10]
+       [--outcomes results/tries_main.jsonl] [--out runs/greedy_lever] [--workers 2] [--json]
 """
 
 from __future__ import annotations
@@ -27,7 +32,6 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -48,12 +52,15 @@ from knotlab.core.selection.qmodel import QModel  # noqa: E402
 from knotlab.labeling_db.interchange import read_labels  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-# variant -> (rank_features, train with candidate outcomes from bench/candidate_outcomes.py)
+# variant -> (rank_features, how the tried candidates of `knotlab labels tries` are used)
+# ("floor": only the tried candidates that did not advance get a margin floor; "tries": also no
+# margin row against the ones that did, as `knotlab train --tries` does)
 VARIANTS = {
-    "base": (False, False),
-    "rank": (True, False),
-    "base+out": (False, True),
-    "rank+out": (True, True),
+    "base": (False, ""),
+    "rank": (True, ""),
+    "base+floor": (False, "floor"),
+    "rank+floor": (True, "floor"),
+    "base+tries": (False, "tries"),
 }
 
 
@@ -131,36 +138,14 @@ def _run(job: Job) -> dict:
     return _WORKER.current().run(job)
 
 
-def apply_outcomes(part, execution, outcomes: dict, library: DemoLibrary):
-    """A training part whose states know which tried candidates advanced (bench/
-    candidate_outcomes.py): no margin row against those, at least the state's median margin
-    against those that did not."""
+def replace_states(part, **changes):
+    """The training part with ``changes`` made to every state."""
     from dataclasses import replace
 
     from knotlab.core.selection.learner import TrainingData
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from candidate_outcomes import advanced
-
-    states = []
-    for s in part.states:
-        rec = outcomes.get((execution.execution_id, s.step))
-        if rec is None:
-            states.append(s)
-            continue
-        good = np.zeros(len(s.margins_a), dtype=bool)
-        margins = s.margins_a.copy()
-        floor = float(np.median(margins[margins > 0])) if np.any(margins > 0) else 0.0
-        for t in rec["tried"]:
-            a = library.index_of(t["demo"])
-            if a == s.expert_action:
-                continue
-            if advanced(rec, t):
-                good[a] = True
-            else:
-                margins[a] = max(margins[a], floor)
-        states.append(replace(s, margins_a=margins, also_good_a=good))
-    return TrainingData(tuple(states), part.bellman_pairs, part.goal_states, part.dead_ends_phi)
+    states = tuple(replace(s, **changes) for s in part.states)
+    return TrainingData(states, part.bellman_pairs, part.goal_states, part.dead_ends_phi)
 
 
 def fold_models(
@@ -178,10 +163,14 @@ def fold_models(
         parts_by_rank[rank] = parts
     parts = parts_by_rank[rank]
     if use_outcomes:
+        from knotlab.core.selection.tries import apply_tries
+
         parts = [
-            None if p is None else apply_outcomes(p, e, outcomes, library)
+            None if p is None else apply_tries(p, e.execution_id, outcomes, library.keys)
             for p, e in zip(parts, executions, strict=True)
         ]
+        if use_outcomes == "floor":
+            parts = [None if p is None else replace_states(p, also_good_a=None) for p in parts]
     models, metrics = {}, {}
     for k in range(int(folds.max()) + 1):
         train = [p for p, f in zip(parts, folds, strict=True) if f != k and p is not None]
@@ -202,13 +191,13 @@ def main() -> int:
     ap.add_argument("--labels", default=str(ROOT / "results/labels_oracle_main.jsonl"))
     ap.add_argument("--library", default=str(ROOT / "static/demos_default.npz"))
     ap.add_argument("--tasks", default=str(ROOT / "static/tasks_main_train.npz"))
-    ap.add_argument("--variants", default="base,rank")
+    ap.add_argument("--variants", default="base,rank,base+floor,rank+floor,base+tries")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--C", type=float, default=1000.0)
     ap.add_argument("--D", type=float, default=10.0)
     ap.add_argument("--out", default="runs/greedy_lever")
-    ap.add_argument("--outcomes", default="runs/candidate_outcomes.jsonl")
+    ap.add_argument("--outcomes", default=str(ROOT / "results/tries_main.jsonl"))
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
@@ -244,10 +233,10 @@ def main() -> int:
     if any(VARIANTS[v][1] for v in variants):
         path = Path(args.outcomes)
         if not path.exists():
-            ap.error(f"{path} not found: run bench/candidate_outcomes.py first")
-        for line in path.read_text().splitlines():
-            r = json.loads(line)
-            outcomes[(r["execution_id"], r["step_index"])] = r
+            ap.error(f"{path} not found: run `knotlab labels tries` first")
+        from knotlab.core.selection.tries import read_tries
+
+        outcomes = read_tries(path)
     models, metrics, parts_by_rank = {}, {}, {}
     for v in variants:
         if all((v, s) in done for s in starts):

@@ -66,9 +66,7 @@ def merge_training_data(parts: Sequence[TrainingData]) -> TrainingData:
     dead: list[np.ndarray] = []
     for e, part in enumerate(parts):
         off = len(states)
-        states += [
-            LabelledState(s.phi_ad, s.expert_action, s.margins_a, e, s.step) for s in part.states
-        ]
+        states += [replace(s, execution=e) for s in part.states]
         pairs += [(i + off, j + off) for i, j in part.bellman_pairs]
         goals += [g + off for g in part.goal_states]
         dead += list(part.dead_ends_phi)
@@ -259,6 +257,8 @@ class QModelSearch:
     landmarks: tuple[int, int] = (50, 20)  # labelled, dead-end landmark states (0, 0 = none)
     select: SelectBy = SelectBy.TOP1
     rank_features: bool = False  # the cost-rank columns of `LibraryFeaturizer` (issue 12)
+    # Tried candidates (`core.selection.tries`) by (execution id, step): margin rows follow them
+    tries: dict | None = field(default=None, repr=False)
     validation_fraction: float = 0.2
     refit_all: bool = False
     random_state: int = 0
@@ -309,6 +309,18 @@ class QModelSearch:
         self.featurize_s_ = time.perf_counter() - t0
         for w in warnings:
             self.on_warning(w)
+        n_tried = 0
+        if self.tries:
+            from knotlab.core.selection.tries import apply_tries
+
+            keys = tuple(library.keys)
+            n_tried = sum(
+                (e.execution_id, st.step_index) in self.tries for e in executions for st in e.steps
+            )
+            parts = [
+                None if p is None else apply_tries(p, e.execution_id, self.tries, keys)
+                for p, e in zip(parts, executions, strict=True)
+            ]
         train_parts = [parts[i] for i in train_idx if parts[i] is not None]
         val_parts = [parts[i] for i in val_idx if parts[i] is not None]
         if not train_parts:
@@ -361,6 +373,7 @@ class QModelSearch:
             "validation": best.validation,
             "select": self.select.value,
             "rank_features": self.rank_features,
+            "tried_states": n_tried,
             "landmarks": {
                 "labelled": self.landmarks[0],
                 "dead_end": self.landmarks[1],

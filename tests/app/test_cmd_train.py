@@ -82,9 +82,13 @@ def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
         assert summary["select"] == select
         chosen[select] = (summary["C"], summary["D"])
     aucs = {(e["C"], e["D"]): e["validation"]["value_auc"] for e in summary["sweep"]}
+    tops = {(e["C"], e["D"]): e["validation"]["top1"] for e in summary["sweep"]}
     assert len(set(aucs.values())) > 1, aucs  # the data make the choice matter
+    # Each criterion picks its own best point. (Whether the top-1 choice also has the best AUC
+    # depends on the last bits of the QP, i.e. on the CPU's BLAS kernels: on an AVX-512 machine
+    # it ties, on an AVX2 one it does not; docs/determinism.md.)
     assert aucs[chosen["value_auc"]] == max(aucs.values())
-    assert aucs[chosen["top1"]] < max(aucs.values())  # so value_auc picked another point
+    assert tops[chosen["top1"]] == max(tops.values())
     assert cli.main([*args, "--select", "nonsense"]) == 2
 
 
