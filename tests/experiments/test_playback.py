@@ -117,7 +117,18 @@ def test_a_store_episode_plays_from_its_labelled_start(bench_run, tmp_path, caps
     lib = ["--library", str(bench_run["library"])]
     rc = cli.main(["playback", f"db:{episode_id}", "--db", url, "--out", str(out), *lib])
     assert rc == 0, capsys.readouterr().err
-    assert "(knot)" in capsys.readouterr().out
+    # The command replays the store episode as the core re-simulation does. (Whether the replay
+    # of this 3-step demo through registration ties the knot again depends on the CPU: it does on
+    # an AVX2 EPYC, it misses by a few centimetres on an AVX-512 one; docs/determinism.md.)
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.experiments.playback import execution_episode, resimulate
+
+    execution = mini_executions(2)[0]
+    replay = resimulate(
+        execution_episode(execution, "t"), DemoLibrary.load(bench_run["library"]), dt=0.05
+    )
+    said = capsys.readouterr().out
+    assert ("(knot)" if replay.knot else "(no knot)") in said, said
     with Image.open(out) as gif:
         assert gif.n_frames > 3
     assert cli.main(["playback", "db:x", "--db", url, "--out", str(out)]) == 2
