@@ -19,6 +19,23 @@ from knotlab.app.options import (
 )
 from knotlab.core.jsonsafe import json_safe
 
+
+def task_limits(text: str) -> int | dict[str, int]:
+    """argparse type of --first: K, or POLICY=K[,POLICY=K...] (one-line message otherwise)."""
+    if "=" not in text:
+        return integer(1)(text)
+    limits: dict[str, int] = {}
+    for part in text.split(","):
+        name, sep, value = part.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise argparse.ArgumentTypeError(f"expected K or POLICY=K[,POLICY=K...], got {text!r}")
+        if name in limits:
+            raise argparse.ArgumentTypeError(f"--first names {name!r} twice")
+        limits[name] = integer(1)(value.strip())
+    return limits
+
+
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
 
@@ -188,9 +205,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--first",
-        type=integer(1),
+        type=task_limits,
         default=None,
-        help="run the search policies (la*, oracle) on the first K tasks only (default: all)",
+        metavar="K | POLICY=K,...",
+        help="K: run the search policies (la*, oracle) on the first K tasks only; "
+        "POLICY=K,...: those policies on their first K, the others on all (default: all)",
     )
     p.add_argument(
         "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"

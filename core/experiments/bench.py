@@ -28,7 +28,7 @@ import os
 import time
 import traceback
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import partial
@@ -432,7 +432,9 @@ def _run_ray(
         kwargs: dict = {"runtime_env": {"env_vars": blas}, "include_dashboard": False}
         if address is None and workers is not None:
             kwargs["num_cpus"] = workers
-        ray.init(address=address, **kwargs)
+        # No address: a private local instance ("local"), never an already running cluster
+        # that ray.init would otherwise join (and refuse num_cpus for).
+        ray.init(address=address or "local", **kwargs)
         started = True
     n_actors = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
     n_actors = max(1, min(n_actors, len(jobs)))
@@ -592,15 +594,47 @@ class BenchResult:
     results: dict = field(default_factory=dict)
 
 
+TaskLimits = int | Mapping[str, int] | None
+
+
+def task_limit(policy: str, first: TaskLimits) -> int | None:
+    """How many of the first tasks ``policy`` runs under ``first`` (None: all of them).
+
+    ``first`` is None (every policy runs every task), an int K (the search policies run the first
+    K tasks, the others all) or a mapping policy -> K (those policies the first K, the rest all).
+    """
+    if first is None:
+        return None
+    if isinstance(first, int):
+        return first if is_search_policy(policy) else None
+    return first.get(policy)
+
+
+def check_task_limits(first: TaskLimits, policies: Sequence[str]) -> None:
+    """Raise InvalidInputError for a limit below 1 or one naming a policy not being run."""
+    if first is None:
+        return
+    limits = {"--first": first} if isinstance(first, int) else dict(first)
+    for name, k in limits.items():
+        if name != "--first" and name not in policies:
+            raise InvalidInputError(
+                f"--first names {name!r}, which is not among the policies run "
+                f"({', '.join(policies)})"
+            )
+        if k < 1:
+            raise InvalidInputError(f"--first must be >= 1, got {k} for {name}")
+
+
 def wanted_pairs(
-    tasks: Sequence[RopeTask], policies: Sequence[str], first: int | None = None
+    tasks: Sequence[RopeTask], policies: Sequence[str], first: TaskLimits = None
 ) -> list[tuple[int, RopeTask, str]]:
     """(task index, task, policy) of every episode a table asks for, task-major."""
+    limits = {policy: task_limit(policy, first) for policy in policies}
     return [
         (i, task, policy)
         for i, task in enumerate(tasks)
         for policy in policies
-        if first is None or not is_search_policy(policy) or i < first
+        if limits[policy] is None or i < limits[policy]  # type: ignore[operator]
     ]
 
 
@@ -612,7 +646,7 @@ def plan_jobs(
     seed: int,
     max_steps: int,
     noise: float,
-    first: int | None = None,
+    first: TaskLimits = None,
 ) -> list[EpisodeJob]:
     """Jobs still to run, task-major (all policies of task 0, then task 1, ...)."""
     done = set(done)
@@ -642,7 +676,7 @@ def run_bench(
     seed: int = 0,
     noise: float = 0.0,
     max_steps: int = 5,
-    first: int | None = None,
+    first: TaskLimits = None,
     workers: int | None = None,
     engine: str = "local",
     ray_address: str | None = None,
@@ -667,8 +701,7 @@ def run_bench(
         raise InvalidInputError(f"asked for {n_tasks} tasks, the task set has {len(task_set)}")
     if task_set.split != "test" and not training_study:
         raise InvalidInputError(f"benchmarks run on a test set, got a {task_set.split!r} set")
-    if first is not None and first < 1:
-        raise InvalidInputError(f"--first must be >= 1, got {first}")
+    check_task_limits(first, policies)
     if not (math.isfinite(noise) and noise >= 0):
         raise InvalidInputError(f"observation noise must be finite and >= 0, got {noise}")
     learned = [p for p in policies if needs_model(p)]
@@ -760,7 +793,7 @@ def run_bench(
         "training_study": training_study,
         "task_set": {"metadata": task_set.metadata, "n_total": len(task_set), "n_used": n_tasks},
         "policies": policies,
-        "first": first,
+        "first": first if first is None or isinstance(first, int) else dict(first),
         "seeds": {
             "bench_seed": int(seed),
             "task_seeds": {t.task_id: int(t.seed) for t in tasks},

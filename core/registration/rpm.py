@@ -229,9 +229,13 @@ class _PhaseClock:
 # parallelism is `LibraryRegistrar`'s worker threads over chunks, which the kernel allows by
 # releasing the GIL (`nogil=True`); numba's threading layer is never started. Two idioms keep
 # the inner loops SIMD-vectorisable under strict IEEE:
-#   * p is kept in both layouts (p and p^T, one copy per iteration) so every Sinkhorn and
-#     target product is an axpy along contiguous memory; a dot-product reduction is not
-#     vectorised without reassociation;
+#   * p is kept in both layouts (p and p^T, one copy per iteration) so every Sinkhorn, target
+#     and TPS product is an axpy along contiguous memory; a dot-product reduction is not
+#     vectorised without reassociation. Each such product is `_add_weighted_rows`, which adds
+#     four rows per pass over its output in the same order as one at a time (bit-identical):
+#     these loops are bound by loading and storing the output, not by the arithmetic;
+#   * the affinity's distances are a function of their own (`_distance_row`): inlined in the
+#     large kernel, LLVM left that loop scalar;
 #   * exp(-s) is `_exp_neg_row`: Cody-Waite range reduction s = k ln2 - r, a degree-10 Taylor
 #     polynomial (relative truncation error < 3e-13) and 2^-k assembled from its IEEE bits;
 #     LLVM's exp is a scalar libm call when SVML is absent. Measured error vs np.exp: < 1e-7

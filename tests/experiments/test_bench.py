@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import shutil
@@ -12,6 +13,7 @@ import pytest
 
 from knotlab.app import cli
 from knotlab.core.demos.tasks import RopeTask
+from knotlab.core.errors import InvalidInputError
 from knotlab.core.experiments.bench import (
     BenchMismatchError,
     BenchWorker,
@@ -19,7 +21,9 @@ from knotlab.core.experiments.bench import (
     OutcomeLog,
     RunIdentity,
     WorkerSpec,
+    check_task_limits,
     plan_jobs,
+    wanted_pairs,
     wilson_interval,
 )
 from tests.minilib import mini_library, write_mini_files, write_mini_labels
@@ -112,6 +116,36 @@ def test_wilson_interval_matches_known_values(k, n, low, high):
     lo, hi = wilson_interval(k, n)
     assert lo == pytest.approx(low, abs=1e-5)
     assert hi == pytest.approx(high, abs=1e-5)
+
+
+def test_first_per_policy_limits_only_the_named_policies():
+    tasks = [RopeTask(f"t{i}", np.zeros((5, 3)), 0, i) for i in range(3)]
+    first = {"oracle": 1, "la1x10": 2}
+    policies = ["la2x5", "oracle", "la1x10"]
+    pairs = [(p, t.task_id) for _, t, p in wanted_pairs(tasks, policies, first)]
+    assert pairs == [
+        ("la2x5", "t0"),
+        ("oracle", "t0"),
+        ("la1x10", "t0"),
+        ("la2x5", "t1"),
+        ("la1x10", "t1"),
+        ("la2x5", "t2"),
+    ]
+    check_task_limits(first, policies)
+    with pytest.raises(InvalidInputError, match="not among the policies run"):
+        check_task_limits({"la2x10": 5}, ["la2x5"])
+    with pytest.raises(InvalidInputError, match=">= 1"):
+        check_task_limits(0, ["la2x5"])
+
+
+def test_first_flag_parses_one_k_or_per_policy_limits():
+    from knotlab.app.cmd_bench import task_limits
+
+    assert task_limits("125") == 125
+    assert task_limits("la1x10=125, oracle=100") == {"la1x10": 125, "oracle": 100}
+    for bad in ("0", "la2x5=0", "=3", "la2x5=1,la2x5=2", "oracle=many"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            task_limits(bad)
 
 
 def test_wilson_interval_of_nothing_is_nan_and_bad_counts_raise():

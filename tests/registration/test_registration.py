@@ -191,6 +191,24 @@ def test_kernel_exp_matches_numpy(dtype: str) -> None:
     assert rel.max() < (2.5e-7 if dt == np.float32 else 1e-12), rel.max()
 
 
+@pytest.mark.parametrize("rows", [1, 4, 7, 150])
+def test_kernel_weighted_rows_add_in_row_order_bit_for_bit(rows: int) -> None:
+    """The 4-rows-a-pass axpy adds row by row in order: equal bits to the plain loop."""
+    from knotlab.core.registration.kernel import _add_weighted_rows
+
+    rng = np.random.default_rng(rows)
+    mat = rng.uniform(0, 1, (rows, 13)).astype(np.float32)
+    w = rng.uniform(0, 3, rows).astype(np.float32)
+    start = rng.uniform(-1, 1, 13).astype(np.float32)
+    got = start.copy()
+    _add_weighted_rows(mat, w, got, rows, 11)  # the last two entries are past `length`
+    want = start.copy()
+    for r in range(rows):
+        for x in range(11):
+            want[x] = np.float32(want[x] + np.float32(mat[r, x] * w[r]))
+    np.testing.assert_array_equal(got, want)
+
+
 def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
     from knotlab.core.registration.tps import tps_basis
