@@ -151,6 +151,12 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, a usage error: argparse already printed
         return exc.code if isinstance(exc.code, int) else 2
+    # One BLAS thread in every command, as in the bench's workers: OpenBLAS on two threads
+    # rounds some products differently, and a near tie then falls the other way (a replay that
+    # misses the knot its episode tied; docs/determinism.md).
+    from knotlab.core.parallel import single_thread_blas
+
+    single_thread_blas()
     try:
         with sigterm_unwinds():
             return int(args.func(args) or 0)

@@ -6,9 +6,11 @@ grippers/{left,right}, candidates/{rank}/{path_g,grasp_i,release_i,label}, warpe
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 import viser
@@ -51,6 +53,25 @@ def _xyz(p: np.ndarray) -> tuple[float, float, float]:
     return (float(p[0]), float(p[1]), float(p[2]))
 
 
+_Method = TypeVar("_Method", bound=Callable[..., Any])
+
+
+def _serialised(method: _Method) -> _Method:
+    """Run a drawing method under the drawer's lock.
+
+    Viser runs every click callback on its own thread, and one click on a grasp marker fires both
+    the marker's handler and the scene's; two redraws at once then remove each other's nodes
+    half-way ("Cannot assign to 'position' on a removed handle"), seen under load.
+    """
+
+    @functools.wraps(method)
+    def locked(self: SceneDrawer, *args: Any, **kwargs: Any) -> Any:
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return locked  # type: ignore[return-value]
+
+
 class SceneDrawer:
     """One client's scene: draws a SessionView and plays try animations."""
 
@@ -60,6 +81,7 @@ class SceneDrawer:
         self._on_pick = on_pick
         self._polylines: dict[int, list[np.ndarray]] = {}
         self._drawn_ranks: list[int] = []
+        self._lock = threading.RLock()  # one redraw at a time (see _serialised)
         self._anim_stop = threading.Event()
         self._anim_thread: threading.Thread | None = None
         self.first_frame_at: float | None = None  # perf_counter of the last try's first frame
@@ -75,6 +97,7 @@ class SceneDrawer:
         self.label_root.visible = visible
 
     # ------------------------------------------------------------------ state
+    @_serialised
     def draw(self, view: SessionView, *, look: bool = False, show_warped: bool = False) -> None:
         """Draw the rope, cloud and candidates of ``view`` (``look`` points the camera at it)."""
         with self.client.atomic():
@@ -116,6 +139,7 @@ class SceneDrawer:
         cam.look_at = (float(centre[0]), float(centre[1]), 0.0)
         cam.position = (float(centre[0]), float(centre[1]) - 0.75, 0.65)
 
+    @_serialised
     def draw_candidates(self, view: SessionView) -> None:
         """Every candidate's warped trajectories, markers and 3D label; selected one thicker."""
         self.scene.remove_by_name("/label/candidates")
@@ -168,6 +192,7 @@ class SceneDrawer:
             )
         self._drawn_ranks = [c.ranked.rank for c in view.candidates]
 
+    @_serialised
     def show_warped(self, rank: int | None, cloud_n3: np.ndarray | None) -> None:
         """Show one candidate's demo cloud warped onto the scene (None hides it)."""
         self.scene.remove_by_name("/label/warped")
