@@ -614,9 +614,12 @@ def check_task_limits(first: TaskLimits, policies: Sequence[str]) -> None:
     """Raise InvalidInputError for a limit below 1 or one naming a policy not being run."""
     if first is None:
         return
-    limits = {"--first": first} if isinstance(first, int) else dict(first)
-    for name, k in limits.items():
-        if name != "--first" and name not in policies:
+    if isinstance(first, int):
+        if first < 1:
+            raise InvalidInputError(f"--first must be >= 1, got {first}")
+        return
+    for name, k in first.items():
+        if name not in policies:
             raise InvalidInputError(
                 f"--first names {name!r}, which is not among the policies run "
                 f"({', '.join(policies)})"
