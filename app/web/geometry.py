@@ -103,3 +103,47 @@ def pick_polyline(
             if d < best:
                 best_key, best = key, d
     return best_key
+
+
+def pick_marker(
+    origin_3: np.ndarray,
+    direction_3: np.ndarray,
+    markers: dict[int, list[tuple[np.ndarray, float]]],
+) -> int | None:
+    """The key of the marker (centre, radius) the ray passes through nearest its centre.
+
+    Candidates often grasp the same rope end, so their markers overlap and the selected one is
+    drawn larger: the marker whose centre the click is nearest is the one the labeller aimed at,
+    not the one whose surface is in front. Centres within 1 mm of the ray tie; the front one wins.
+    """
+    o = np.asarray(origin_3, dtype=np.float64)
+    u = np.asarray(direction_3, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    hits: list[tuple[float, float, int]] = []
+    for key, spheres in markers.items():
+        for centre, radius in spheres:
+            w = np.asarray(centre, dtype=np.float64) - o
+            along = float(w @ u)
+            miss = float(np.sqrt(max(float(w @ w) - along * along, 0.0)))
+            if along > 0 and miss <= radius:  # in front of the camera, and the ray enters it
+                hits.append((miss, along, key))
+    if not hits:
+        return None
+    nearest = min(miss for miss, _, _ in hits)
+    return min((along, key) for miss, along, key in hits if miss <= nearest + 1e-3)[1]
+
+
+def pick_candidate(
+    origin_3: np.ndarray,
+    direction_3: np.ndarray,
+    markers: dict[int, list[tuple[np.ndarray, float]]],
+    polylines: dict[int, list[np.ndarray]],
+) -> int | None:
+    """What one click selects: the marker under the ray (pick_marker), else the nearest polyline.
+
+    One function decides so that one click has one answer; viser would otherwise fire a marker's
+    own handler and the scene's handler on two threads, and they can disagree where a
+    candidate's path passes in front of another's marker.
+    """
+    hit = pick_marker(origin_3, direction_3, markers)
+    return hit if hit is not None else pick_polyline(origin_3, direction_3, polylines)

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import numpy as np
 import viser
 
-from knotlab.app.web.geometry import pick_polyline, tube_faces, tube_vertices
+from knotlab.app.web.geometry import pick_candidate, tube_faces, tube_vertices
 from knotlab.app.web.session import Candidate, SessionView
 from knotlab.core.world.frames import FrameRecorder
 
@@ -59,9 +59,9 @@ _Method = TypeVar("_Method", bound=Callable[..., Any])
 def _serialised(method: _Method) -> _Method:
     """Run a drawing method under the drawer's lock.
 
-    Viser runs every click callback on its own thread, and one click on a grasp marker fires both
-    the marker's handler and the scene's; two redraws at once then remove each other's nodes
-    half-way ("Cannot assign to 'position' on a removed handle"), seen under load.
+    Viser runs every callback on its own thread: a click's redraw can meet another click's, or a
+    try's, and two redraws at once remove each other's nodes half-way ("Cannot assign to
+    'position' on a removed handle"), seen under load.
     """
 
     @functools.wraps(method)
@@ -80,6 +80,7 @@ class SceneDrawer:
         self.scene = client.scene
         self._on_pick = on_pick
         self._polylines: dict[int, list[np.ndarray]] = {}
+        self._markers: dict[int, list[tuple[np.ndarray, float]]] = {}
         self._drawn_ranks: list[int] = []
         self._lock = threading.RLock()  # one redraw at a time (see _serialised)
         self._anim_stop = threading.Event()
@@ -144,6 +145,7 @@ class SceneDrawer:
         """Every candidate's warped trajectories, markers and 3D label; selected one thicker."""
         self.scene.remove_by_name("/label/candidates")
         self._polylines = {}
+        self._markers = {}
         for c in view.candidates:
             rank = c.ranked.rank
             rejected = rank in view.rejected
@@ -165,20 +167,23 @@ class SceneDrawer:
                     thickness_units="screen",
                 )
             self._polylines[rank] = lines
+            markers: list[tuple[np.ndarray, float]] = []
+            self._markers[rank] = markers
             radius = 0.016 if selected else 0.011
             for i, p in enumerate(c.grasp_points):
-                sphere = self.scene.add_icosphere(
+                self.scene.add_icosphere(
                     f"{base}/grasp_{i}", radius=radius, color=colour, position=_xyz(p)
                 )
-                sphere.on_click(self._picker(rank))
+                markers.append((np.asarray(p, dtype=np.float64), radius))
             for i, p in enumerate(c.release_points):
-                box = self.scene.add_box(
+                self.scene.add_box(
                     f"{base}/release_{i}",
                     color=colour,
                     dimensions=(radius * 1.6,) * 3,
                     position=_xyz(p),
                 )
-                box.on_click(self._picker(rank))
+                # The box picked as its circumscribed sphere (half-diagonal 1.39 x radius).
+                markers.append((np.asarray(p, dtype=np.float64), radius * 0.8 * np.sqrt(3)))
             # Labels half-way along each path, stacked by rank: candidates often grasp the same
             # rope end, where their labels would overlap.
             active = [g for g in range(2) if c.closed_gt[g].any()] or [0]
@@ -208,18 +213,24 @@ class SceneDrawer:
         )
 
     # ------------------------------------------------------------------ picking
-    def _picker(self, rank: int) -> Callable[[object], None]:
-        def pick(_event: object) -> None:
-            self._on_pick(rank)
+    def paths(self, rank: int) -> list[np.ndarray]:
+        """The drawn path polylines of one candidate (one per gripper it uses)."""
+        with self._lock:
+            return list(self._polylines.get(rank, []))
 
-        return pick
+    def pick(self, ray_origin_3: np.ndarray, ray_direction_3: np.ndarray) -> int | None:
+        """The candidate rank a click along this ray selects (None: nothing within reach)."""
+        with self._lock:  # a redraw replaces both dicts
+            markers, polylines = self._markers, self._polylines
+        return pick_candidate(
+            np.asarray(ray_origin_3), np.asarray(ray_direction_3), markers, polylines
+        )
 
     def _scene_click(self, event: viser.SceneClickEvent) -> None:
+        # The only click handler: markers have none of their own (see pick_candidate).
         if event.client_id != self.client.client_id:
             return
-        rank = pick_polyline(
-            np.asarray(event.ray_origin), np.asarray(event.ray_direction), self._polylines
-        )
+        rank = self.pick(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
         if rank is not None:
             self._on_pick(rank)
 

@@ -159,9 +159,23 @@ class Tab:
         self.page.screenshot(path=str(path))
         return path
 
+    def settled_camera(self, timeout: float = 10.0):
+        """The browser's camera once two reads 0.3 s apart agree (a look_at may be under way)."""
+
+        def pose() -> tuple:
+            cam = self.server_tab.client.camera
+            return (tuple(np.round(cam.position, 6)), tuple(np.round(cam.wxyz, 6)), cam.aspect)
+
+        def settled():
+            before = pose()
+            time.sleep(0.3)
+            return self.server_tab.client.camera if pose() == before else None
+
+        return wait_until(settled, timeout, "the camera to settle")
+
     def click_world(self, point_3: np.ndarray) -> None:
         """Click where a world point appears on the canvas (camera from the browser)."""
-        cam = self.server_tab.client.camera
+        cam = self.settled_camera()
         import viser.transforms as tf
 
         world_from_cam = tf.SE3.from_rotation_and_translation(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 
+import numpy as np
 import viser
 
 from knotlab.app.web.session import Phase
@@ -43,13 +44,36 @@ def test_list_and_3d_click_select_the_same_candidate(tabs):
     panels = tab.server_tab.panels
     wait_until(lambda: panels.cand_buttons[2].icon == viser.Icon.ARROW_RIGHT, 10, "list mark")
     assert panels.cand_buttons[0].icon is None
-    # 3D: click candidate 2's grasp marker where the browser's camera shows it.
+    # 3D: click one of candidate 2's markers where the browser's camera shows it, one that no
+    # other candidate's marker hides from this view (candidates often grasp the same rope end).
     cand = tab.session.candidate(2)
+    wait_until(lambda: _scene_has(tab.page, "/label/candidates/2/grasp_0"), 10, "the marker")
     wait_until(lambda: tab.server_tab.client.camera is not None, 5, "camera")
-    tab.click_world(cand.grasp_points[0])
+    eye = np.asarray(tab.settled_camera().position, dtype=float)
+    visible = [
+        p
+        for p in (*cand.grasp_points, *cand.release_points)
+        if tab.server_tab.drawer.pick(eye, np.asarray(p) - eye) == 2
+    ]
+    d = tab.server_tab.drawer
+    print("EYE", eye, {k: [(np.round(c, 3), r) for c, r in v] for k, v in d._markers.items()})
+    print(
+        "PICKS",
+        [d.pick(eye, np.asarray(p) - eye) for p in (*cand.grasp_points, *cand.release_points)],
+        cand.grasp_points,
+        cand.release_points,
+    )
+    assert visible, "every marker of candidate 2 is hidden behind another candidate's"
+    tab.click_world(visible[0])
     wait_until(lambda: tab.session.view().selected == 2, 10, "3D selection")
     wait_until(lambda: panels.cand_buttons[1].icon == viser.Icon.ARROW_RIGHT, 10, "list mark")
     assert panels.cand_buttons[2].icon is None
+    # A path (lines have no click handler in viser: the scene's ray picks the nearest path).
+    path = next(line for line in tab.server_tab.drawer.paths(4) if len(line) > 2)
+    on_path = [p for p in path[len(path) // 4 :] if tab.server_tab.drawer.pick(eye, p - eye) == 4]
+    assert on_path, "candidate 4's path is hidden from this view"
+    tab.click_world(on_path[len(on_path) // 2])
+    wait_until(lambda: tab.session.view().selected == 4, 10, "path selection")
 
 
 def test_try_then_accept_stores_the_label(tabs, app):

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from knotlab.app.web.geometry import pick_polyline, ray_polyline_distance, tube_faces, tube_vertices
+from knotlab.app.web.geometry import (
+    pick_candidate,
+    pick_marker,
+    pick_polyline,
+    ray_polyline_distance,
+    tube_faces,
+    tube_vertices,
+)
 
 
 def test_the_tube_is_watertight_with_the_rope_volume():
@@ -35,3 +42,27 @@ def test_pick_returns_the_closest_polyline_within_reach():
     assert pick_polyline(np.array([0.5, 0.08, 1]), down, lines) == 2
     assert pick_polyline(np.array([0.5, 0.01, 1]), down, lines) == 1
     assert pick_polyline(np.array([0.5, 0.5, 1]), down, lines) is None
+
+
+def test_a_click_on_a_marker_beats_a_path_passing_in_front_of_it():
+    down = np.array([0.0, 0, -1])
+    # Candidate 3's path runs 2 cm above candidate 2's grasp marker: the marker is what the
+    # labeller clicked, whatever the path's distance to the ray.
+    markers = {2: [(np.array([0.5, 0.0, 0.0]), 0.011)], 3: [(np.array([0.9, 0.0, 0.0]), 0.016)]}
+    lines = {
+        2: [np.array([[0.5, 0.0, 0.0], [0.5, 0.3, 0.0]])],
+        3: [np.array([[0.0, 0.0, 0.02], [1.0, 0.0, 0.02]])],
+    }
+    assert pick_polyline(np.array([0.5, 0.0, 1]), down, lines) in (2, 3)
+    assert pick_candidate(np.array([0.5, 0.0, 1]), down, markers, lines) == 2
+    # Two markers on one ray: the one in front (nearer the camera) wins.
+    stacked = {1: [(np.array([0.2, 0.0, 0.0]), 0.011)], 4: [(np.array([0.2, 0.0, 0.05]), 0.011)]}
+    assert pick_marker(np.array([0.2, 0.0, 1]), down, stacked) == 4
+    assert pick_marker(np.array([0.2, 0.0, -1]), -down, stacked) == 1
+    # A small marker inside a larger (selected) one: a click on the small one's centre takes it.
+    nested = {3: [(np.array([0.54, 0.0, 0.0]), 0.016)], 2: [(np.array([0.532, 0.0, 0.0]), 0.011)]}
+    assert pick_marker(np.array([0.532, 0.0, 1]), down, nested) == 2
+    assert pick_marker(np.array([0.545, 0.0, 1]), down, nested) == 3
+    # Beside every marker: the nearest path within reach, else nothing.
+    assert pick_candidate(np.array([0.7, 0.01, 1]), down, markers, lines) == 3
+    assert pick_candidate(np.array([0.7, 0.5, 1]), down, markers, lines) is None
