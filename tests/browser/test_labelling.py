@@ -48,7 +48,7 @@ def test_list_and_3d_click_select_the_same_candidate(tabs):
     # other candidate's marker hides from this view (candidates often grasp the same rope end).
     cand = tab.session.candidate(2)
     wait_until(lambda: _scene_has(tab.page, "/label/candidates/2/grasp_0"), 10, "the marker")
-    wait_until(lambda: tab.server_tab.client.camera is not None, 5, "camera")
+    wait_until(lambda: tab.server_tab.client.camera is not None, 20, "camera")
     eye = np.asarray(tab.settled_camera().position, dtype=float)
     visible = [
         p
