@@ -213,10 +213,14 @@ def run_interactive(worker: BenchWorker, args: argparse.Namespace, tasks, clock)
     pool = SimPool(str(Path(args.library).resolve()), args.pool_workers)
     rows = []
     try:
-        for name in args.interactive.split(","):
+        variants = {"on": (True,), "off": (False,), "both": (False, True)}[args.prefetch]
+        for name, prefetch in [(n, p) for n in args.interactive.split(",") for p in variants]:
             policy = make_policy(name, worker.spec.model)
-            policy.runner = PoolRunner(pool)  # type: ignore[attr-defined]
-            policy.name = f"{name} (app, {args.pool_workers} workers)"
+            runner = PoolRunner(pool)
+            runner.speculates = prefetch  # off: each level waits for the previous one whole
+            policy.runner = runner  # type: ignore[attr-defined]
+            policy.name = f"{name} (app, {args.pool_workers} workers"
+            policy.name += ")" if prefetch else ", no prefetch)"
             worker._policies[policy.name] = policy
             # warm the workers' featurizers for this model before timing
             run_episode(
@@ -258,6 +262,12 @@ def main() -> None:
         "on a pool of --pool-workers processes ('' to skip)",
     )
     parser.add_argument("--pool-workers", type=int, default=2)
+    parser.add_argument(
+        "--prefetch",
+        choices=("on", "off", "both"),
+        default="both",
+        help="app mode with the next level's certain expansions started early, without, or both",
+    )
     parser.add_argument("--json", action="store_true", help="also print one JSON object last")
     args = parser.parse_args()
     if args.starts < 1:

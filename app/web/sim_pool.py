@@ -107,18 +107,40 @@ def _expand_job(library_path: str, model: QModel, job: ExpansionJob) -> Expansio
 class PoolRunner:
     """Runs a lookahead level's expansions at once on the pool (`ExpansionRunner`)."""
 
+    speculates = True
+
     def __init__(self, pool: SimPool, on_result: Callable[[], None] | None = None) -> None:
         self.pool = pool
         self.on_result = on_result
+        # id(job) -> (job, future); the job is kept so that its id is not reused meanwhile
+        self._prefetched: dict[int, tuple[ExpansionJob, Any]] = {}
+        self.prefetch_hits = 0  # expansions a level found started already
+
+    def _submit(self, model: QModel, job: ExpansionJob) -> Any:
+        return self.pool._pool.submit(_expand_job, self.pool.library_path, model, job)
+
+    def prefetch(self, model: QModel, jobs: Sequence[ExpansionJob]) -> None:
+        """Queue expansions a later `run` will ask for; they start when a worker is free."""
+        for job in jobs:
+            if id(job) not in self._prefetched:
+                self._prefetched[id(job)] = (job, self._submit(model, job))
+
+    def drop_prefetched(self) -> None:
+        """Cancel the prefetched expansions no level asked for (a knot ended the search)."""
+        for _job, future in self._prefetched.values():
+            future.cancel()
+        self._prefetched.clear()
 
     def run(
         self, world, transferer, featurizer, model: QModel, jobs: Sequence[ExpansionJob]
     ) -> Iterator[ExpansionResult]:
         """Submit every job now (not when the first result is asked for: the search may value
-        memo hits first); yield the results in the jobs' order."""
-        futures = [
-            self.pool._pool.submit(_expand_job, self.pool.library_path, model, job) for job in jobs
-        ]
+        memo hits first), reusing prefetched ones; yield the results in the jobs' order."""
+        futures = []
+        for job in jobs:
+            early = self._prefetched.pop(id(job), None)
+            self.prefetch_hits += early is not None
+            futures.append(early[1] if early is not None else self._submit(model, job))
         return self._in_order(futures)
 
     def _in_order(self, futures: list) -> Iterator[ExpansionResult]:

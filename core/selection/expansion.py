@@ -8,7 +8,9 @@ there. A runner decides where that happens:
 * `SequentialRunner`: in this process, one at a time, lazily, so the caller can stop at the
   first knot without simulating the rest (the bench: it parallelises over episodes instead);
 * a process pool (the app's `SimPool`): every expansion of a level at once, results handed back
-  in the level's order, so the search picks exactly what the sequential one would.
+  in the level's order, so the search picks exactly what the sequential one would. Such a
+  runner also takes the next level's expansions early (`prefetch`) once they are certain, so a
+  worker that would wait for the level's last result starts on the next level instead.
 """
 
 from __future__ import annotations
@@ -77,6 +79,16 @@ def expand(
 class ExpansionRunner(Protocol):
     """Runs a level's expansions; yields their results in the order of ``jobs``."""
 
+    speculates: bool  # worth telling it the next level's certain expansions early
+
+    def prefetch(self, model: QModel, jobs: Sequence[ExpansionJob]) -> None:
+        """Start expansions a later `run` will ask for (the same job objects)."""
+        ...
+
+    def drop_prefetched(self) -> None:
+        """Forget (and cancel where possible) prefetched expansions nobody asked for."""
+        ...
+
     def run(
         self,
         world,
@@ -91,6 +103,14 @@ class ExpansionRunner(Protocol):
 
 class SequentialRunner:
     """Expansions one after another in the caller's world, computed only when asked for."""
+
+    speculates = False
+
+    def prefetch(self, model: QModel, jobs: Sequence[ExpansionJob]) -> None:
+        """Nothing to start early: one process, lazily."""
+
+    def drop_prefetched(self) -> None:
+        """Nothing prefetched."""
 
     def run(
         self,

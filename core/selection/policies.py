@@ -162,6 +162,43 @@ class _Node:
     tree_id: int = 0  # its entry in the decision's tree (0 = the root)
 
 
+def _level_candidates(
+    q_by_node: list[np.ndarray], width: int, n_open: int
+) -> list[tuple[float, int, int]]:
+    """Every node's best actions as (Q, node, action), best first; ``n_open`` nodes are open."""
+    per_node = width if n_open < 3 else max(1, width // 2)
+    candidates = []
+    for node_i, q_a in enumerate(q_by_node):
+        order = np.argsort(-q_a, kind="stable")[:per_node]
+        candidates += [(float(q_a[a]), node_i, int(a)) for a in order if np.isfinite(q_a[a])]
+    candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
+    return candidates
+
+
+def beam_level(q_by_node: list[np.ndarray], width: int) -> list[tuple[float, int, int]]:
+    """The (Q, node, action) a lookahead level expands: the ``width`` best over the open nodes."""
+    return _level_candidates(q_by_node, width, len(q_by_node))[:width]
+
+
+def certain_members(known_q: list[np.ndarray], unknown: int, width: int) -> list[tuple[int, int]]:
+    """(node, action) pairs of the next level whatever ``unknown`` children still to come bring.
+
+    The known children are the first nodes of the next level, in order. Each child still to come
+    may open a node whose ``per_node`` candidates all outrank every known one (ties go to the
+    lower node, i.e. the known), so a known candidate is certain when it stays within ``width``
+    in every case: 0 to ``unknown`` more nodes open, each changing ``per_node``.
+    """
+    certain: set[tuple[int, int]] | None = None
+    for extra in range(unknown + 1):
+        n_open = len(known_q) + extra
+        per_node = width if n_open < 3 else max(1, width // 2)
+        slots = max(width - extra * per_node, 0)
+        members = {(i, a) for _, i, a in _level_candidates(known_q, width, n_open)[:slots]}
+        certain = members if certain is None else certain & members
+    ranked = _level_candidates(known_q, width, len(known_q) + unknown)
+    return [(i, a) for _, i, a in ranked if certain and (i, a) in certain]
+
+
 class LookaheadPolicy(Policy):
     """Beam search in simulation over Q (lfd_facts section 6), stopping at the first knot.
 
@@ -198,16 +235,22 @@ class LookaheadPolicy(Policy):
         self.memo = OutcomeMemo()
 
     def _run_level(
-        self, ctx: StepContext, nodes: list[_Node], actions: list[int], value: bool
+        self,
+        ctx: StepContext,
+        nodes: list[_Node],
+        actions: list[int],
+        value: bool,
+        early: dict[tuple[int, int], ExpansionJob],
     ) -> Iterator[tuple[ExpansionResult, bool]]:
-        """(result, from the memo) per (node, action), in order; misses go to the runner."""
+        """(result, from the memo) per (node, action), in order; misses go to the runner
+        (as the job objects handed to it early, where `_prefetch` did)."""
         keys = [
             OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)
             for node, a in zip(nodes, actions, strict=True)
         ]
         known = [self.memo.get(k) for k in keys]
         misses = [
-            ExpansionJob(node.snapshot, node.cloud_n3, a, value)
+            early.get((node.tree_id, a)) or ExpansionJob(node.snapshot, node.cloud_n3, a, value)
             for node, a, out in zip(nodes, actions, known, strict=True)
             if out is None
         ]
@@ -224,6 +267,34 @@ class LookaheadPolicy(Policy):
                 cloud, q = value_child(ctx.world, ctx.featurizer, self.model)
             yield ExpansionResult(out, cloud, q), True
 
+    def _prefetch(
+        self,
+        ctx: StepContext,
+        known: list[_Node],
+        unknown: int,
+        value: bool,
+        early: dict[tuple[int, int], ExpansionJob],
+    ) -> None:
+        """Hand the runner the next level's expansions that are certain already.
+
+        With 2 workers and 5 expansions a level, the level's last one runs alone; a worker
+        starts on the next level instead. Only certain members (`certain_members`) go early, so
+        the search simulates nothing the sequential one would not, except when a knot among
+        the level's last results ends it (the prefetched work is then dropped).
+        """
+        jobs = []
+        for node_i, a in certain_members([n.q_a for n in known], unknown, self.width):
+            node = known[node_i]
+            if (node.tree_id, a) in early:
+                continue
+            if self.memo.get(OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)):
+                continue  # the level takes it from the memo
+            job = ExpansionJob(node.snapshot, node.cloud_n3, a, value)
+            early[(node.tree_id, a)] = job
+            jobs.append(job)
+        if jobs:
+            self.runner.prefetch(self.model, jobs)
+
     def choose(self, ctx: StepContext) -> Decision:
         """Beam search from the current state; returns the best root action."""
         world = ctx.world
@@ -235,21 +306,12 @@ class LookaheadPolicy(Policy):
         root_outcomes: dict[int, ActionOutcome] = {}
         tree: list[dict] = []
         expansions = reused = 0  # reused: taken from the memo, not simulated
+        early: dict[tuple[int, int], ExpansionJob] = {}  # (node tree id, action) -> prefetched
         t0 = time.perf_counter()
         max_depth = min(self.depth, ctx.steps_left)
         try:
             for level in range(max_depth):
-                per_node = self.width if len(frontier) < 3 else max(1, self.width // 2)
-                candidates = []
-                for node_i, node in enumerate(frontier):
-                    order = np.argsort(-node.q_a, kind="stable")[:per_node]
-                    candidates += [
-                        (float(node.q_a[a]), node_i, int(a))
-                        for a in order
-                        if np.isfinite(node.q_a[a])
-                    ]
-                candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
-                chosen = candidates[: self.width]
+                chosen = beam_level([node.q_a for node in frontier], self.width)
                 # After the episode's last action only a knot counts: a non-knot child is a
                 # failure whatever it looks like, so its value is not worth a scan.
                 at_horizon = level + 1 >= ctx.steps_left
@@ -258,9 +320,12 @@ class LookaheadPolicy(Policy):
                     [frontier[i] for _, i, _ in chosen],
                     [a for _, _, a in chosen],
                     not at_horizon,
+                    early,
                 )
                 next_frontier = []
-                for (_, node_i, a), (res, from_memo) in zip(chosen, results, strict=True):
+                for done, ((_, node_i, a), (res, from_memo)) in enumerate(
+                    zip(chosen, results, strict=True), start=1
+                ):
                     node, outcome = frontier[node_i], res.outcome
                     expansions += 1
                     reused += from_memo
@@ -312,10 +377,16 @@ class LookaheadPolicy(Policy):
                                 len(tree),
                             )
                         )
+                    if self.runner.speculates and level + 1 < max_depth:
+                        self._prefetch(
+                            ctx, next_frontier, len(chosen) - done, level + 2 < ctx.steps_left,
+                            early,
+                        )  # fmt: skip
                 frontier = next_frontier
                 if not frontier:
                     break
         finally:
+            self.runner.drop_prefetched()
             world.restore(root_snapshot)
         return self._decide(
             None, root_q, backed, root_outcomes, expansions, t0, False, reused, tree

@@ -51,5 +51,8 @@ def test_pool_search_matches_the_sequential_search(tmp_path):
     assert there.info["backed_up"] == here.info["backed_up"]
     assert there.info["tree"] == here.info["tree"]
     assert len(counted) == there.info["expansions"] - there.info["reused_expansions"]
+    # The second level was under way before the first finished (certain members, prefetched).
+    assert max(node["level"] for node in there.info["tree"]) == 2
+    assert runner.prefetch_hits > 0
     assert there.outcome is not None and here.outcome is not None
     assert there.outcome.snapshot_after.equals(here.outcome.snapshot_after)
