@@ -123,6 +123,65 @@ def _add_weighted_rows(mat, w, out, rows, length):  # pragma: no cover - compile
 
 
 @njit(cache=True, nogil=True, fastmath=False)
+def _add_weighted_rows3(mat, w0v, w1v, w2v, o0, o1, o2, rows, length):  # pragma: no cover
+    """`_add_weighted_rows` for three (weights, out) pairs in one pass over `mat`.
+
+    Each out gets exactly the sums, in exactly the order, of its own `_add_weighted_rows`
+    call (bit-identical); `mat` is read once instead of three times.
+    """
+    r = 0
+    while r + 4 <= rows:
+        m0, m1, m2, m3 = mat[r], mat[r + 1], mat[r + 2], mat[r + 3]
+        a0, a1, a2, a3 = w0v[r], w0v[r + 1], w0v[r + 2], w0v[r + 3]
+        b0, b1, b2, b3 = w1v[r], w1v[r + 1], w1v[r + 2], w1v[r + 3]
+        c0, c1, c2, c3 = w2v[r], w2v[r + 1], w2v[r + 2], w2v[r + 3]
+        for x in range(length):
+            v0, v1, v2, v3 = m0[x], m1[x], m2[x], m3[x]
+            o0[x] = o0[x] + v0 * a0 + v1 * a1 + v2 * a2 + v3 * a3
+            o1[x] = o1[x] + v0 * b0 + v1 * b1 + v2 * b2 + v3 * b3
+            o2[x] = o2[x] + v0 * c0 + v1 * c1 + v2 * c2 + v3 * c3
+        r += 4
+    while r < rows:
+        m0 = mat[r]
+        a0, b0, c0 = w0v[r], w1v[r], w2v[r]
+        for x in range(length):
+            v0 = m0[x]
+            o0[x] = o0[x] + v0 * a0
+            o1[x] = o1[x] + v0 * b0
+            o2[x] = o2[x] + v0 * c0
+        r += 1
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _add_weighted_rows4(mat, w0v, w1v, w2v, w3v, o0, o1, o2, o3, rows, length):  # pragma: no cover
+    """`_add_weighted_rows3` for four (weights, out) pairs (bit-identical to four calls)."""
+    r = 0
+    while r + 4 <= rows:
+        m0, m1, m2, m3 = mat[r], mat[r + 1], mat[r + 2], mat[r + 3]
+        a0, a1, a2, a3 = w0v[r], w0v[r + 1], w0v[r + 2], w0v[r + 3]
+        b0, b1, b2, b3 = w1v[r], w1v[r + 1], w1v[r + 2], w1v[r + 3]
+        c0, c1, c2, c3 = w2v[r], w2v[r + 1], w2v[r + 2], w2v[r + 3]
+        d0, d1, d2, d3 = w3v[r], w3v[r + 1], w3v[r + 2], w3v[r + 3]
+        for x in range(length):
+            v0, v1, v2, v3 = m0[x], m1[x], m2[x], m3[x]
+            o0[x] = o0[x] + v0 * a0 + v1 * a1 + v2 * a2 + v3 * a3
+            o1[x] = o1[x] + v0 * b0 + v1 * b1 + v2 * b2 + v3 * b3
+            o2[x] = o2[x] + v0 * c0 + v1 * c1 + v2 * c2 + v3 * c3
+            o3[x] = o3[x] + v0 * d0 + v1 * d1 + v2 * d2 + v3 * d3
+        r += 4
+    while r < rows:
+        m0 = mat[r]
+        a0, b0, c0, d0 = w0v[r], w1v[r], w2v[r], w3v[r]
+        for x in range(length):
+            v0 = m0[x]
+            o0[x] = o0[x] + v0 * a0
+            o1[x] = o1[x] + v0 * b0
+            o2[x] = o2[x] + v0 * c0
+            o3[x] = o3[x] + v0 * d0
+        r += 1
+
+
+@njit(cache=True, nogil=True, fastmath=False)
 def rpm_kernel(
     idx,
     x_an3,
@@ -262,9 +321,10 @@ def rpm_kernel(
                 for d in range(3):
                     rx[d, i] = r[i] * xs[d, i]
                 rx[3, i] = r[i]
-            for d in range(4):
-                _add_weighted_rows(pt, cy[d], fwd[d], m, n)
-                _add_weighted_rows(p, rx[d], bwd[d], n, m)
+            _add_weighted_rows4(
+                pt, cy[0], cy[1], cy[2], cy[3], fwd[0], fwd[1], fwd[2], fwd[3], m, n
+            )
+            _add_weighted_rows4(p, rx[0], rx[1], rx[2], rx[3], bwd[0], bwd[1], bwd[2], bwd[3], n, m)
             for i in range(n):
                 wf[i] = r[i] * fwd[3, i]
                 inlier = wf[i] >= cutoff or rule == 2
@@ -322,8 +382,9 @@ def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragm
     for d in range(3):
         for q in range(k):
             e_3k[d, q] = h_k3[q, d]
-    for d in range(3):  # e[d, q] += sum_i G[i, q] x^[d, i], i ascending
-        _add_weighted_rows(g_nk, target_3n[d], e_3k[d], n, k)
+    # e[d, q] += sum_i G[i, q] x^[d, i], i ascending
+    t = target_3n
+    _add_weighted_rows3(g_nk, t[0], t[1], t[2], e_3k[0], e_3k[1], e_3k[2], n, k)
     for q in range(k):
         s = one / (one + lam * mu_k[q])
         for d in range(3):
@@ -334,8 +395,9 @@ def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragm
 def _apply(gt_kn, e_3k, out_3n, n, k):  # pragma: no cover - compiled
     """out = G e, out stored (3, n); vectorised over n."""
     out_3n[:, :n] = 0
-    for d in range(3):  # out[d, i] = sum_q G[i, q] e[d, q], q ascending
-        _add_weighted_rows(gt_kn, e_3k[d], out_3n[d], k, n)
+    # out[d, i] = sum_q G[i, q] e[d, q], q ascending
+    e = e_3k
+    _add_weighted_rows3(gt_kn, e[0], e[1], e[2], out_3n[0], out_3n[1], out_3n[2], k, n)
 
 
 @njit(cache=True, nogil=True, fastmath=False)

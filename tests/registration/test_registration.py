@@ -209,6 +209,32 @@ def test_kernel_weighted_rows_add_in_row_order_bit_for_bit(rows: int) -> None:
     np.testing.assert_array_equal(got, want)
 
 
+
+@pytest.mark.parametrize("rows", [1, 4, 7, 150])
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_fused_weighted_rows_equal_one_call_per_output_bit_for_bit(rows: int, dt) -> None:
+    """The 3- and 4-output axpys give each output the bits of its own single-output call."""
+    from knotlab.core.registration.kernel import (
+        _add_weighted_rows,
+        _add_weighted_rows3,
+        _add_weighted_rows4,
+    )
+
+    rng = np.random.default_rng(rows)
+    mat = rng.uniform(-1, 1, (rows, 13)).astype(dt)
+    w = rng.uniform(-3, 3, (4, rows)).astype(dt)
+    start = rng.uniform(-1, 1, (4, 13)).astype(dt)
+    want = start.copy()
+    for d in range(4):
+        _add_weighted_rows(mat, w[d], want[d], rows, 11)
+    got3, got4 = start.copy(), start.copy()
+    _add_weighted_rows3(mat, w[0], w[1], w[2], got3[0], got3[1], got3[2], rows, 11)
+    _add_weighted_rows4(mat, *w, *got4, rows, 11)
+    np.testing.assert_array_equal(got3[:3].view(np.uint8), want[:3].view(np.uint8))
+    np.testing.assert_array_equal(got3[3], start[3])  # untouched
+    np.testing.assert_array_equal(got4.view(np.uint8), want.view(np.uint8))
+    np.testing.assert_array_equal(got4[:, 11:], start[:, 11:])  # past `length`: untouched
+
 def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
     from knotlab.core.registration.tps import tps_basis
