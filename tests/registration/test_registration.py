@@ -209,7 +209,6 @@ def test_kernel_weighted_rows_add_in_row_order_bit_for_bit(rows: int) -> None:
     np.testing.assert_array_equal(got, want)
 
 
-
 @pytest.mark.parametrize("rows", [1, 4, 7, 150])
 @pytest.mark.parametrize("dt", [np.float32, np.float64])
 def test_fused_weighted_rows_equal_one_call_per_output_bit_for_bit(rows: int, dt) -> None:
@@ -234,6 +233,7 @@ def test_fused_weighted_rows_equal_one_call_per_output_bit_for_bit(rows: int, dt
     np.testing.assert_array_equal(got3[3], start[3])  # untouched
     np.testing.assert_array_equal(got4.view(np.uint8), want.view(np.uint8))
     np.testing.assert_array_equal(got4[:, 11:], start[:, 11:])  # past `length`: untouched
+
 
 def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
