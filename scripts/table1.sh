@@ -19,14 +19,20 @@ db="sqlite:///results/labels_${level}.db"
 mkdir -p results
 export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 
-# 1. Oracle labels for the training starts (resumable: labelled tasks are skipped).
+# 1. Oracle labels for the training starts (resumable: labelled tasks are skipped). A clone has
+#    the committed labels but no database: they are imported first (an import then export gives
+#    back the same bytes), so a clone relabels nothing and leaves the committed file as it is.
+labels="results/labels_oracle_${level}.jsonl"
+if [ ! -e "results/labels_${level}.db" ] && [ -e "$labels" ]; then
+  $bin/knotlab labels import "$labels" --db "$db"
+fi
 $bin/knotlab label --oracle --tasks train --level "$level" --limit "$n_train" --db "$db"
-$bin/knotlab labels export --format jsonl --db "$db" --out "results/labels_oracle_${level}.jsonl"
+$bin/knotlab labels export --format jsonl --db "$db" --out "$labels"
 
 # 1b. Try the 5 cheapest candidates of every labelled state once in simulation (resumable): the
 #     training then knows which alternatives to the oracle's demo advance as well (issue 12's
 #     lever; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with, NN 48.0 %).
-$bin/knotlab labels tries --labels "results/labels_oracle_${level}.jsonl" --top 5 \
+$bin/knotlab labels tries --labels "$labels" --top 5 \
   --out "results/tries_${level}.jsonl"
 
 # 2. Train on the training labels only (validation split by execution, seed 0). Chosen on the
@@ -36,7 +42,7 @@ $bin/knotlab labels tries --labels "results/labels_oracle_${level}.jsonl" --top 
 #    0.949 of pairs (0.683 without landmarks at the same top-1). To redo the sweep:
 #    `knotlab train --labels ... --C 1,10,100,1000 --D 1,10 --landmarks 50,20` (and 0,0).
 if [ ! -e "results/model_${level}.npz" ]; then
-  $bin/knotlab train --labels "results/labels_oracle_${level}.jsonl" \
+  $bin/knotlab train --labels "$labels" \
     --tries "results/tries_${level}.jsonl" \
     --C 1000 --D 10 --landmarks 50,20 --out "results/model_${level}.npz" --json \
     | tee "results/train_${level}.txt"
