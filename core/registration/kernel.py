@@ -154,7 +154,11 @@ def _add_weighted_rows3(mat, w0v, w1v, w2v, o0, o1, o2, rows, length):  # pragma
 
 @njit(cache=True, nogil=True, fastmath=False)
 def _add_weighted_rows4(mat, w0v, w1v, w2v, w3v, o0, o1, o2, o3, rows, length):  # pragma: no cover
-    """`_add_weighted_rows3` for four (weights, out) pairs (bit-identical to four calls)."""
+    """`_add_weighted_rows3` for four (weights, out) pairs (bit-identical to four calls).
+
+    Written out again rather than looping over outputs: with the outputs unrolled LLVM
+    vectorises the x loop; a loop over a runtime number of outputs would be the inner one.
+    """
     r = 0
     while r + 4 <= rows:
         m0, m1, m2, m3 = mat[r], mat[r + 1], mat[r + 2], mat[r + 3]
