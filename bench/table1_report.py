@@ -102,7 +102,10 @@ def main() -> int:
                 f"{'-' if paper is None else f'{100 * paper:.1f} %'} | {decide:.2f} | {wall:.1f} |"
             )
         hours = sum(r["wall_s"] for recs in runs.values() for r in recs) / 3600
-        print(f"\n{hours:.1f} hours of episode time in all ({hours / 2:.1f} on 2 workers).\n")
+        print(
+            f"\n{hours:.1f} hours of episode time in all "
+            f"(at best {hours / 2:.1f} of wall time on 2 workers).\n"
+        )
         _paired_table(runs, policies)
     return 0
 

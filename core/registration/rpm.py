@@ -232,8 +232,9 @@ class _PhaseClock:
 #   * p is kept in both layouts (p and p^T, one copy per iteration) so every Sinkhorn, target
 #     and TPS product is an axpy along contiguous memory; a dot-product reduction is not
 #     vectorised without reassociation. Each such product is `_add_weighted_rows`, which adds
-#     four rows per pass over its output in the same order as one at a time (bit-identical):
-#     these loops are bound by loading and storing the output, not by the arithmetic;
+#     four rows per pass over its output in the same order as one at a time (bit-identical);
+#     where several outputs share one matrix (targets: 4, TPS fit and apply: 3) its 3- and
+#     4-output forms read the matrix once for all of them, each output summed as alone;
 #   * the affinity's distances are a function of their own (`_distance_row`): inlined in the
 #     large kernel, LLVM left that loop scalar;
 #   * exp(-s) is `_exp_neg_row`: Cody-Waite range reduction s = k ln2 - r, a degree-10 Taylor
