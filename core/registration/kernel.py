@@ -42,7 +42,8 @@ def exp_bits_constants(dt: np.dtype) -> tuple[np.floating, np.floating]:
 _K_PRIOR, _K_FRAC, _K_CUTOFF, _K_ONE, _K_ZERO, _K_TINY = range(16, 22)
 TARGET_RULES = {"batch": 0, "gpu": 1, "weighted": 2}
 # stop_after: run the phases up to this one in every iteration (the benchmark's phase split)
-PHASES = ("affinity", "sinkhorn", "targets", "tps fit")
+PHASES = ("affinity", "sinkhorn", "targets", "tps fit", "costs")
+N_COSTS = 10  # the columns of params.COST_NAMES, in that order
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -212,16 +213,14 @@ def rpm_kernel(
     rule,
     sinkhorn_iters,
     stop_after,
+    mu_a64,
+    theta_a64,
+    mu_y64,
+    theta_y64,
+    scale,
     e_f,
     e_g,
-    fx_out,
-    gy_out,
-    xhat_out,
-    yhat_out,
-    wf_out,
-    wg_out,
-    mf_out,
-    mg_out,
+    costs,
     corr,
     failed,
 ):  # pragma: no cover - compiled
@@ -356,18 +355,17 @@ def rpm_kernel(
             _apply(gt_akn[a], ef, fx, n, k)
             _apply(gt_y, eg, gy, m, ky)
         failed[b] = not ok
-        for i in range(n):
-            wf_out[b, i] = wf[i]
-            for d in range(3):
-                fx_out[b, i, d] = fx[d, i]
-                xhat_out[b, i, d] = xhat[d, i]
-                mf_out[b, i, d] = fwd[d, i] / max(fwd[3, i], tiny)
-        for j in range(m):
-            wg_out[b, j] = wg[j]
-            for d in range(3):
-                gy_out[b, j, d] = gy[d, j]
-                yhat_out[b, j, d] = yhat[d, j]
-                mg_out[b, j, d] = bwd[d, j] / max(bwd[3, j], tiny)
+        if stop_after >= 4:
+            weighted = rule == 2
+            map_f, inl_f, res_f = _match_costs(fx, xhat, fwd, wf, weighted, tiny, n)
+            map_g, inl_g, res_g = _match_costs(gy, yhat, bwd, wg, weighted, tiny, m)
+            bend_f, aff_f = _spline_costs(mu_a64[a], theta_a64[a], ef, k)
+            bend_g, aff_g = _spline_costs(mu_y64, theta_y64, eg, ky)
+            row = (map_f, map_g, bend_f, bend_g, inl_f / max(n, 1), inl_g / m, aff_f, aff_g)
+            for q in range(8):
+                costs[b, q] = row[q]
+            costs[b, 8] = res_f * scale
+            costs[b, 9] = res_g * scale
         for q in range(k):
             for d in range(3):
                 e_f[b, q, d] = ef[d, q]
@@ -378,6 +376,54 @@ def rpm_kernel(
             for i in range(n):
                 for j in range(m):
                     corr[b, i, j] = r[i] * p[i, j] * c_prev[j]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _match_costs(w3, hat3, sums4, w, weighted, tiny, n):  # pragma: no cover - compiled
+    """(mapping cost, inlier mass, mean residual) of one direction, in float64.
+
+    w3: warped points, hat3: their targets, sums4: the weighted sums behind the targets (row 3 the
+    inlier mass), w: inlier masses (3, n) / (n,) in the RPM dtype. Mapping cost: sum over points
+    of |w(x) - x^|^2 weighted by w when `weighted` (else 1); residual: the w-weighted mean
+    distance from w(x) to the match centroid sums4[:3] / sums4[3].
+    """
+    mapping = 0.0
+    mass = 0.0
+    residual = 0.0
+    for i in range(n):
+        wi = np.float64(w[i])
+        sq = 0.0
+        res_sq = 0.0
+        denom = max(sums4[3, i], tiny)
+        for d in range(3):
+            x = np.float64(w3[d, i])
+            diff = x - np.float64(hat3[d, i])
+            sq += diff * diff
+            centroid = np.float64(sums4[d, i] / denom)  # in the RPM dtype, as the targets are
+            res_sq += (x - centroid) * (x - centroid)
+        mapping += wi * sq if weighted else sq
+        mass += wi
+        residual += wi * math.sqrt(res_sq)
+    return mapping, mass, residual / max(mass, 1e-30)
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _spline_costs(mu_k, theta_pk, e_3k, k):  # pragma: no cover - compiled
+    """(bending energy sum mu_q |e_q|^2, |B - I|_F) of one spline, in float64."""
+    bend = 0.0
+    for q in range(k):
+        for d in range(3):
+            e = np.float64(e_3k[d, q])
+            bend += mu_k[q] * (e * e)
+    aff = 0.0
+    for row in range(3):
+        for d in range(3):
+            b = 0.0
+            for q in range(k):
+                b += theta_pk[1 + row, q] * np.float64(e_3k[d, q])
+            dev = b - (1.0 if row == d else 0.0)
+            aff += dev * dev
+    return bend, math.sqrt(aff)
 
 
 @njit(cache=True, nogil=True, fastmath=False)

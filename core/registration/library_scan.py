@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import fields
 from pathlib import Path
 
@@ -57,6 +59,39 @@ class LibraryRegistrar:
         self.chunk_size = chunk_size
         self.n_workers = n_workers
         self._cache: OrderedDict[str, CloudSide] = OrderedDict()
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_pid = 0
+        self._pool_lock = threading.Lock()
+
+    def _worker_pool(self) -> ThreadPoolExecutor | None:
+        """This registrar's scan threads, started on first use and kept (None for 1 worker).
+
+        Re-created in a forked child: the parent's threads do not exist there.
+        """
+        if self.n_workers <= 1:
+            return None
+        with self._pool_lock:
+            if self._pool is None or self._pool_pid != os.getpid():
+                self._pool = ThreadPoolExecutor(self.n_workers, thread_name_prefix="knotlab-scan")
+                self._pool_pid = os.getpid()
+            return self._pool
+
+    def close(self) -> None:
+        """Stop the scan threads (they are started again if the registrar is used again)."""
+        with self._pool_lock:
+            if self._pool is not None and self._pool_pid == os.getpid():
+                self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __getstate__(self) -> dict:
+        # Threads and locks do not pickle; a copy in another process starts its own.
+        state = self.__dict__.copy()
+        state.update(_pool=None, _pool_pid=0, _pool_lock=None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._pool_lock = threading.Lock()
 
     def prepare(
         self, demo_clouds: Sequence[np.ndarray], key: str | None = None, params=None
@@ -98,6 +133,7 @@ class LibraryRegistrar:
             n_workers=self.n_workers,
             keep_corr=keep_correspondence,
             timings=timings,
+            pool=self._worker_pool(),
         )
 
     def _path(self, full_key: str) -> Path | None:

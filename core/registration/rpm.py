@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -241,6 +241,50 @@ class _PhaseClock:
 #     polynomial (relative truncation error < 3e-13) and 2^-k assembled from its IEEE bits;
 #     LLVM's exp is a scalar libm call when SVML is absent. Measured error vs np.exp: < 1e-7
 #     relative in float32 (about 1 ulp), < 1e-12 in float64 (tests/test_registration.py).
+# The ten costs are computed in the kernel too, in float64, at the end of each demo over that
+# demo's own points (`_match_costs`, `_spline_costs`): in NumPy over a chunk's padded arrays
+# they took ~6 % of a scan, and the padding could change a cost's last bit with the chunking.
+# Chunks therefore only schedule work: every output is the same whatever the chunk (tested).
+
+
+@dataclass(frozen=True, eq=False)
+class KernelInputs:
+    """What every chunk of one scan hands the kernel: scene arrays, schedule and constants."""
+
+    dtype: np.dtype
+    y_m3: np.ndarray
+    g_y: np.ndarray
+    gt_y: np.ndarray
+    mu_y: np.ndarray
+    h_y: np.ndarray
+    lams: np.ndarray
+    inv2t: np.ndarray
+    cst: np.ndarray
+    e_bias: np.floating
+    e_shift: np.floating
+
+
+def kernel_inputs(scene: CloudSide, params: RegistrationParams) -> KernelInputs:
+    """The scan-wide kernel inputs, built once per scan rather than once per chunk."""
+    dt = np.dtype(params.dtype)
+    m = int(scene.n_a[0])
+    ky = m + 4
+    scene_cast = scene.cast(dt)
+    lams, temps = params.normalised_schedule()
+    e_bias, e_shift = exp_bits_constants(dt)
+    return KernelInputs(
+        dtype=dt,
+        y_m3=np.ascontiguousarray(scene_cast["x_an3"][0, :m]),
+        g_y=np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky]),
+        gt_y=np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m]),
+        mu_y=np.ascontiguousarray(scene_cast["mu_ak"][0, :ky]),
+        h_y=np.ascontiguousarray(scene_cast["h_ak3"][0, :ky]),
+        lams=lams.astype(dt),
+        inv2t=(0.5 / temps).astype(dt),
+        cst=kernel_constants(dt, params),
+        e_bias=e_bias,
+        e_shift=e_shift,
+    )
 
 
 def rpm_batch(
@@ -251,10 +295,13 @@ def rpm_batch(
     keep_corr: bool,
     timings: dict[str, float] | None = None,
     stop_after: int = len(PHASES) - 1,
+    inputs: KernelInputs | None = None,
 ) -> _ChunkOut:
     """Run bidirectional TPS-RPM for demos idx against the scene (one cloud) in one batch."""
     clock = _PhaseClock(timings)
-    dt = np.dtype(params.dtype)
+    if inputs is None:
+        inputs = kernel_inputs(scene, params)
+    dt = inputs.dtype
     weighted = params.target_rule == "weighted"
     n_valid = demo.n_a[idx]
     n = max(int(n_valid.max()), 1)
@@ -262,29 +309,17 @@ def rpm_batch(
     cast = demo.cast(dt)
     m = int(scene.n_a[0])
     ky = m + 4
-    scene_cast = scene.cast(dt)
-    y = np.ascontiguousarray(scene_cast["x_an3"][0, :m])
-    g_y = np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky])
-    gt_y = np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m])
-    mu_y = np.ascontiguousarray(scene_cast["mu_ak"][0, :ky])
-    h_y = np.ascontiguousarray(scene_cast["h_ak3"][0, :ky])
     nb = len(idx)
     frac = params.outlier_frac
     corner_coef = frac if not weighted else params.outlier_prior
     a_out = np.array(m * frac, dt)
     b_out = (n_valid * frac).astype(dt)
     corner = (corner_coef * np.sqrt(n_valid * m)).astype(dt)
-    lams, temps = params.normalised_schedule()
-    cst = kernel_constants(dt, params)
-    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)
-    e_bias, e_shift = exp_bits_constants(dt)
+    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)  # scratch, one per call
 
     e_f = np.zeros((nb, k, 3), dt)
     e_g = np.zeros((nb, ky, 3), dt)
-    fx, xhat, mf = (np.zeros((nb, n, 3), dt) for _ in range(3))
-    gy, yhat, mg = (np.zeros((nb, m, 3), dt) for _ in range(3))
-    w_f = np.zeros((nb, n), dt)
-    w_g = np.zeros((nb, m), dt)
+    costs = np.zeros((nb, len(COST_NAMES)))
     corr = np.zeros((nb, n, m) if keep_corr else (0, 0, 0), dt)
     bad = np.zeros(nb, np.bool_)
     clock.tick("setup")
@@ -296,65 +331,39 @@ def rpm_batch(
         cast["gt_akn"],
         cast["mu_ak"],
         cast["h_ak3"],
-        y,
-        g_y,
-        gt_y,
-        mu_y,
-        h_y,
-        lams.astype(dt),
-        (0.5 / temps).astype(dt),
-        cst,
+        inputs.y_m3,
+        inputs.g_y,
+        inputs.gt_y,
+        inputs.mu_y,
+        inputs.h_y,
+        inputs.lams,
+        inputs.inv2t,
+        inputs.cst,
         bits,
         bits.view(dt),
-        e_bias,
-        e_shift,
+        inputs.e_bias,
+        inputs.e_shift,
         a_out,
         b_out,
         corner,
         TARGET_RULES[params.target_rule],
         params.sinkhorn_iters,
         stop_after,
+        demo.mu_ak,
+        demo.theta_apk,
+        scene.mu_ak[0],
+        scene.theta_apk[0],
+        float(params.scale_m),
         e_f,
         e_g,
-        fx,
-        gy,
-        xhat,
-        yhat,
-        w_f,
-        w_g,
-        mf,
-        mg,
+        costs,
         corr,
         bad,
     )
     clock.tick("rpm kernel")
     failed = {int(b): "weighted TPS system singular (no inlier mass?)" for b in np.flatnonzero(bad)}
 
-    # costs, in normalised coordinates, float64
-    fx64, gy64 = fx.astype(float), gy.astype(float)
-    xhat64, yhat64 = xhat.astype(float), yhat.astype(float)
-    w_f64, w_g64 = w_f.astype(float), w_g.astype(float)
-    wf = w_f64 if weighted else demo.mask_an[idx, :n].astype(float)
-    wg = w_g64 if weighted else np.ones((nb, m))
-    map_fwd = np.einsum("bn,bn->b", wf, ((fx64 - xhat64) ** 2).sum(axis=2))
-    map_bwd = np.einsum("bm,bm->b", wg, ((gy64 - yhat64) ** 2).sum(axis=2))
     e_f64, e_g64 = e_f.astype(float), e_g.astype(float)
-    bend_f = np.einsum("bk,bkd->b", demo.mu_ak[idx, :k], e_f64**2)
-    bend_g = np.einsum("k,bkd->b", scene.mu_ak[0, :ky], e_g64**2)
-    inl_f = w_f64.sum(axis=1) / np.maximum(n_valid, 1)
-    inl_g = w_g64.mean(axis=1)
-    b_f = np.einsum("bpk,bkd->bpd", demo.theta_apk[idx, 1:4, :k], e_f64)
-    b_g = np.einsum("pk,bkd->bpd", scene.theta_apk[0, 1:4, :ky], e_g64)
-    aff_f = np.linalg.norm(b_f - np.eye(3), axis=(1, 2))
-    aff_g = np.linalg.norm(b_g - np.eye(3), axis=(1, 2))
-    res_f = np.linalg.norm(fx64 - mf, axis=2)
-    res_g = np.linalg.norm(gy64 - mg, axis=2)
-    res_f = (w_f64 * res_f).sum(1) / np.maximum(w_f64.sum(1), 1e-30) * params.scale_m
-    res_g = (w_g64 * res_g).sum(1) / np.maximum(w_g64.sum(1), 1e-30) * params.scale_m
-    costs = np.stack(
-        [map_fwd, map_bwd, bend_f, bend_g, inl_f, inl_g, aff_f, aff_g, res_f, res_g], axis=1
-    )
-    clock.tick("costs")
     return _ChunkOut(e_f64, e_g64, costs, corr.astype(float) if keep_corr else None, failed)
 
 
@@ -427,6 +436,24 @@ class ScanResult:
         )
 
 
+def chunk_plan(n_items: int, chunk_size: int, n_workers: int) -> list[tuple[int, int]]:
+    """[start, stop) ranges of at most chunk_size items that shrink toward the end.
+
+    Guided scheduling: with several workers each chunk is at most 1 / (2 workers) of what is
+    left, so the last chunks are small and the workers, taking chunks as they free up, finish
+    close together (148 demos in chunks of 16 on 2 workers left one worker idle for up to 16
+    demos). A chunk's results do not depend on the chunk it is in (tested), only speed does.
+    """
+    plan: list[tuple[int, int]] = []
+    start = 0
+    while start < n_items:
+        left = n_items - start
+        size = min(chunk_size, left if n_workers <= 1 else -(-left // (2 * n_workers)))
+        plan.append((start, start + size))
+        start += size
+    return plan
+
+
 def run_chunks(
     demo: CloudSide,
     scene: CloudSide,
@@ -436,22 +463,31 @@ def run_chunks(
     n_workers: int,
     keep_corr: bool,
     timings: dict[str, float] | None = None,
+    pool: Executor | None = None,
 ) -> ScanResult:
-    """Registers the scene against every demo, in chunks (independent batches) over workers."""
+    """Registers the scene against every demo, in chunks (independent batches) over workers.
+
+    `pool`: an executor with n_workers threads to reuse (LibraryRegistrar keeps one); without
+    it a pool is started and stopped for this call (~0.7 ms).
+    """
     n_demos = len(demo)
     demo.cast(np.dtype(params.dtype))  # convert once, before any worker thread reads it
+    inputs = kernel_inputs(scene, params)
     good = np.flatnonzero(demo.ok_a)
-    chunks = [good[i : i + chunk_size] for i in range(0, len(good), chunk_size)]
+    chunks = [good[a:b] for a, b in chunk_plan(len(good), chunk_size, n_workers)]
 
     def work(idx: np.ndarray) -> _ChunkOut:
         # A demo whose fit overflows is detected below and reported; no warning spam for it.
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return rpm_batch(demo, idx, scene, params, keep_corr, timings)
+            return rpm_batch(demo, idx, scene, params, keep_corr, timings, inputs=inputs)
 
     if n_workers > 1 and len(chunks) > 1:
-        # NumPy releases the GIL in its kernels, so threads share one copy of the library.
-        with ThreadPoolExecutor(n_workers) as pool:
+        # The kernel releases the GIL, so threads share one copy of the library.
+        if pool is not None:
             outs = list(pool.map(work, chunks))
+        else:
+            with ThreadPoolExecutor(n_workers) as own_pool:
+                outs = list(own_pool.map(work, chunks))
     else:
         outs = [work(idx) for idx in chunks]
     n_max = demo.x_an3.shape[1]

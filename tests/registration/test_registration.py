@@ -90,6 +90,69 @@ def _library(seed: int, sizes: list[int]) -> list[np.ndarray]:
     return [rope_cloud(rng, n) for n in sizes]
 
 
+@pytest.mark.parametrize("params", [SCAN, replace(EXACT, n_iter=8)], ids=["scan", "exact"])
+def test_scan_results_do_not_depend_on_chunks_or_workers(params: RegistrationParams) -> None:
+    """Chunking only schedules work: every output is bit-identical, a pair scan included.
+
+    (Before the costs moved into the kernel, a chunk's zero padding could change the last bit
+    of a cost, so the same scan with another chunk size was not bit-identical.)
+    """
+    demos = _library(7, [60, 120, 95, 75, 110, 100, 90, 85, 70])
+    rng = np.random.default_rng(8)
+    scene = corrupt(rng, smooth_warp(rng, 0.03)(demos[1]))
+    runs = [
+        LibraryRegistrar(params, chunk_size=size, n_workers=workers).scan(
+            scene, demos, keep_correspondence=True
+        )
+        for size, workers in [(16, 1), (1, 1), (4, 2), (3, 2)]
+    ]
+    assert runs[0].ok_a.all()
+    for run in runs[1:]:
+        for name in ("costs_ac", "e_f_ak3", "e_g_ak3", "corr_anm"):
+            np.testing.assert_array_equal(getattr(run, name), getattr(runs[0], name), name)
+    single = register(demos[3], scene, params)
+    np.testing.assert_array_equal(single.costs.as_array(), runs[0].costs_ac[3])
+
+
+@pytest.mark.parametrize(
+    "n_items,chunk_size,n_workers", [(148, 16, 2), (148, 8, 3), (5, 16, 2), (37, 4, 1), (0, 8, 2)]
+)
+def test_chunk_plan_covers_every_item_once_and_shrinks_at_the_end(
+    n_items: int, chunk_size: int, n_workers: int
+) -> None:
+    from knotlab.core.registration.rpm import chunk_plan
+
+    plan = chunk_plan(n_items, chunk_size, n_workers)
+    covered = [i for start, stop in plan for i in range(start, stop)]
+    assert covered == list(range(n_items))
+    sizes = [stop - start for start, stop in plan]
+    assert all(1 <= size <= chunk_size for size in sizes)
+    assert sizes == sorted(sizes, reverse=True)  # never a big chunk after a small one
+    if n_workers == 1:
+        assert sizes[:-1] == [chunk_size] * (len(sizes) - 1)
+    elif n_items >= 4 * n_workers:
+        # the tail is fine-grained: the last chunk is one item, the first ones full size
+        assert sizes[-1] == 1 and sizes[0] == min(chunk_size, -(-n_items // (2 * n_workers)))
+
+
+def test_registrar_keeps_its_threads_and_survives_pickling_and_close() -> None:
+    import pickle
+
+    demos = _library(9, [70, 80, 90, 75, 85])
+    scene = demos[2] + 0.01
+    registrar = LibraryRegistrar(SCAN, chunk_size=1, n_workers=2)
+    first = registrar.scan(scene, demos)
+    pool = registrar._worker_pool()
+    registrar.scan(scene, demos)
+    assert registrar._worker_pool() is pool  # one pool for the registrar's life, not per scan
+    copy = pickle.loads(pickle.dumps(registrar))  # e.g. shipped to a worker process
+    np.testing.assert_array_equal(copy.scan(scene, demos).costs_ac, first.costs_ac)
+    registrar.close()
+    np.testing.assert_array_equal(registrar.scan(scene, demos).costs_ac, first.costs_ac)
+    registrar.close()
+    copy.close()
+
+
 def test_batched_scan_agrees_with_single_pair() -> None:
     demos = _library(5, [80, 120, 95, 110, 100, 90])
     rng = np.random.default_rng(6)
@@ -239,7 +302,7 @@ def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
     from knotlab.core.registration.tps import tps_basis
 
-    x, y = demo, scene
+    x, y = demo / params.scale_m, scene / params.scale_m  # the kernel's coordinates
     bx, by = tps_basis(x, params.normalised_rot_coef), tps_basis(y, params.normalised_rot_coef)
     n, m = len(x), len(y)
     prior, frac, cutoff = params.outlier_prior, params.outlier_frac, params.outlier_cutoff
@@ -260,8 +323,8 @@ def _numpy_reference(demo, scene, params):
         mr = r[:, None] * p * c_prev[None]
         mc = r[:, None] * p * c[None]
         w_f, w_g = mr.sum(1), mc.sum(0)
-        xhat = (mr @ y) / w_f[:, None]
-        yhat = (mc.T @ x) / w_g[:, None]
+        mean_f = xhat = (mr @ y) / w_f[:, None]
+        mean_g = yhat = (mc.T @ x) / w_g[:, None]
         if weighted:
             e_f, e_g = bx.solve(xhat, lam, w_f), by.solve(yhat, lam, w_g)
         else:
@@ -269,16 +332,32 @@ def _numpy_reference(demo, scene, params):
             yhat = np.where((w_g >= cutoff)[:, None], yhat, gy)
             e_f, e_g = bx.solve(xhat, lam), by.solve(yhat, lam)
         fx, gy = bx.g_nk @ e_f, by.g_nk @ e_g
-    map_cost = np.sum((w_f if weighted else 1.0) * ((fx - xhat) ** 2).sum(1))
-    return e_f, e_g, map_cost
+    costs = {
+        "map_fwd": np.sum((w_f if weighted else 1.0) * ((fx - xhat) ** 2).sum(1)),
+        "map_bwd": np.sum((w_g if weighted else 1.0) * ((gy - yhat) ** 2).sum(1)),
+        "bend_f": np.sum(bx.mu_k[:, None] * e_f**2),
+        "bend_g": np.sum(by.mu_k[:, None] * e_g**2),
+        "inlier_frac_fwd": w_f.sum() / n,
+        "inlier_frac_bwd": w_g.sum() / m,
+        "affine_dev_f": np.linalg.norm(bx.theta_pk[1:4] @ e_f - np.eye(3)),
+        "affine_dev_g": np.linalg.norm(by.theta_pk[1:4] @ e_g - np.eye(3)),
+        "residual_fwd_m": np.sum(w_f * np.linalg.norm(fx - mean_f, axis=1))
+        / w_f.sum()
+        * params.scale_m,
+        "residual_bwd_m": np.sum(w_g * np.linalg.norm(gy - mean_g, axis=1))
+        / w_g.sum()
+        * params.scale_m,
+    }
+    return e_f, e_g, np.array([costs[name] for name in COST_NAMES])
 
 
+@pytest.mark.parametrize("scale_m", [1.0, 0.5])
 @pytest.mark.parametrize("rule", ["batch", "weighted"])
-def test_kernel_matches_numpy_reference_on_random_clouds(rule: str) -> None:
+def test_kernel_matches_numpy_reference_on_random_clouds(rule: str, scale_m: float) -> None:
     from knotlab.core.registration.rpm import demo_side, rpm_batch, scene_side
 
     rng = np.random.default_rng(11)
-    params = replace(SCAN, target_rule=rule, dtype="float64", n_iter=6, scale_m=1.0)
+    params = replace(SCAN, target_rule=rule, dtype="float64", n_iter=6, scale_m=scale_m)
     for n, m in [(23, 31), (40, 17)]:
         demo = rng.normal(scale=0.3, size=(n, 3))
         scene = demo[: min(n, m)] + rng.normal(scale=0.05, size=(min(n, m), 3))
@@ -286,13 +365,14 @@ def test_kernel_matches_numpy_reference_on_random_clouds(rule: str) -> None:
         # clouds already median-centred so the reference needs no normalisation
         demo -= np.median(demo, axis=0)
         scene -= np.median(scene, axis=0)
-        e_f, e_g, map_cost = _numpy_reference(demo, scene, params)
+        e_f, e_g, costs = _numpy_reference(demo, scene, params)
         out = rpm_batch(
             demo_side([demo], params), np.array([0]), scene_side(scene, params), params, False
         )
         np.testing.assert_allclose(out.e_f[0, : len(e_f)], e_f, rtol=1e-7, atol=1e-9)
         np.testing.assert_allclose(out.e_g[0, : len(e_g)], e_g, rtol=1e-7, atol=1e-9)
-        assert out.costs_bc[0, 0] == pytest.approx(map_cost, rel=1e-7, abs=1e-12)
+        # every cost column, computed in the kernel, against the plain formulas
+        np.testing.assert_allclose(out.costs_bc[0], costs, rtol=1e-7, atol=1e-12)
         # float32 (the SCAN dtype) stays close to the float64 result
         p32 = replace(params, dtype="float32")
         out32 = rpm_batch(demo_side([demo], p32), np.array([0]), scene_side(scene, p32), p32, False)
