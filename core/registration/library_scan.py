@@ -70,6 +70,10 @@ class LibraryRegistrar:
         """
         if self.n_workers <= 1:
             return None
+        if self._pool is not None and self._pool_pid != os.getpid():
+            # A forked child: the parent's threads are gone, and a lock another thread held at
+            # the fork would stay held here for ever.
+            self._pool, self._pool_lock = None, threading.Lock()
         with self._pool_lock:
             if self._pool is None or self._pool_pid != os.getpid():
                 self._pool = ThreadPoolExecutor(self.n_workers, thread_name_prefix="knotlab-scan")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import select
+import signal
 import warnings
 from dataclasses import replace
 
@@ -149,6 +152,25 @@ def test_registrar_keeps_its_threads_and_survives_pickling_and_close() -> None:
     np.testing.assert_array_equal(copy.scan(scene, demos).costs_ac, first.costs_ac)
     registrar.close()
     np.testing.assert_array_equal(registrar.scan(scene, demos).costs_ac, first.costs_ac)
+    # a forked child (multiprocessing's default here) has none of the parent's threads: it
+    # starts its own instead of waiting for ever on the parent's
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            os.write(write_end, registrar.scan(scene, demos).costs_ac.tobytes())
+        finally:
+            os._exit(0)
+    os.close(write_end)
+    try:
+        ready, _, _ = select.select([read_end], [], [], 60.0)
+        assert ready, "the forked child's scan hung"
+        data = b"".join(iter(lambda: os.read(read_end, 1 << 16), b""))
+    finally:
+        os.close(read_end)
+        os.kill(pid, signal.SIGKILL) if not ready else None
+        os.waitpid(pid, 0)
+    np.testing.assert_array_equal(np.frombuffer(data).reshape(first.costs_ac.shape), first.costs_ac)
     registrar.close()
     copy.close()
 
