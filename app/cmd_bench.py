@@ -101,6 +101,7 @@ def _run(args: argparse.Namespace) -> int:
         "noise": args.noise,
         "first": args.first,
         "max_steps": args.max_steps,
+        "share_simulations": args.share_simulations,
         "argv": sys.argv,
     }
     n_tasks = min(args.tasks, len(task_set))
@@ -120,6 +121,7 @@ def _run(args: argparse.Namespace) -> int:
         ray_address=args.ray_address,
         progress=not args.no_progress,
         arguments=arguments,
+        share_simulations=args.share_simulations,
     )
     level = task_set.metadata.get("level", args.level)
     print(
@@ -196,6 +198,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--workers", type=WORKERS, default=None, help="worker processes/actors (default: cores)"
     )
     p.add_argument("--engine", choices=("local", "ray"), default="local")
+    p.add_argument(
+        "--share-simulations",
+        action="store_true",
+        help="run each task's policies on one worker and simulate an execution once for all of "
+        "them (the same outcomes, ~30%% less time; decision times then reflect the sharing)",
+    )
     p.add_argument(
         "--ray-address", default=None, help="Ray cluster address (default: start a local Ray)"
     )

@@ -18,10 +18,10 @@ import numpy as np
 
 from knotlab.core.errors import KnotlabError
 from knotlab.core.failures import FailureKind
-from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
+from knotlab.core.registration.planner import ActionOutcome, DemoTransferer
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.features import LibraryFeaturizer
-from knotlab.core.selection.policies import Policy, StepContext
+from knotlab.core.selection.policies import OutcomeMemo, Policy, StepContext, execute_with_memo
 from knotlab.core.world.trajectory import GripperTrajectory
 
 log = logging.getLogger(__name__)
@@ -186,8 +186,14 @@ def run_episode(
     seed: int = 0,
     max_steps: int = MAX_STEPS,
     observe_noise: float = 0.0,
+    memo: OutcomeMemo | None = None,
 ) -> EpisodeRecord:
-    """Reset the world to the start rope and act with ``policy`` until a knot or ``max_steps``."""
+    """Reset the world to the start rope and act with ``policy`` until a knot or ``max_steps``.
+
+    ``memo``: simulated outcomes shared with the other policies run on this task (same start,
+    same seed), so an execution another policy already simulated is restored, not simulated
+    again; the episode is the same either way.
+    """
     t_episode = time.perf_counter()
     steps: list[StepRecord] = []
     failure_kind: FailureKind | None = FailureKind.NO_KNOT
@@ -213,14 +219,16 @@ def run_episode(
             cloud = featurizer.observe(world, noise=observe_noise, seed=step_seed(seed, step))
             scan = featurizer.scan(cloud)
             t_scan = time.perf_counter() - t0
-            ctx = StepContext(world, cloud, scan, featurizer, transferer, step, max_steps - step)
+            ctx = StepContext(
+                world, cloud, scan, featurizer, transferer, step, max_steps - step, memo
+            )
             decision = policy.choose(ctx)
             t_decide = time.perf_counter() - t0
             if decision.outcome is not None:
                 world.restore(decision.outcome.snapshot_after)
                 outcome = decision.outcome
             else:
-                outcome = apply_demo(world, transferer, cloud, decision.action)
+                outcome = execute_with_memo(memo, world, transferer, cloud, decision.action)
         except _NUMERIC_ERRORS as exc:
             log.warning("task %s step %d: %s: %s", task_id, step, type(exc).__name__, exc)
             failure_kind, error = FailureKind.ERROR, f"{type(exc).__name__}: {exc}"

@@ -50,6 +50,9 @@ class StepContext:
     transferer: DemoTransferer
     step_index: int
     steps_left: int
+    # Outcomes shared with other policies on the same task (a bench run with
+    # --share-simulations); None: each policy keeps its own (the lookahead's) or none.
+    memo: OutcomeMemo | None = None
     _phi_ad: np.ndarray | None = None
 
     @property
@@ -152,6 +155,32 @@ class OutcomeMemo:
             self._items.popitem(last=False)
 
 
+def execute_with_memo(
+    memo: OutcomeMemo | None,
+    world: RopeWorld,
+    transferer: DemoTransferer,
+    cloud_n3: np.ndarray,
+    action: int,
+    state_key: str | None = None,
+) -> ActionOutcome:
+    """`apply_demo`, through ``memo`` when one is given; the world ends in the after-state.
+
+    A stored outcome is restored (`snapshot_after`), not simulated: the same state as executing
+    it (see `OutcomeMemo`). ``state_key``: the world's snapshot digest, if the caller has it.
+    """
+    if memo is None:
+        return apply_demo(world, transferer, cloud_n3, action)
+    state = state_key if state_key is not None else snapshot_digest(world.snapshot())
+    key = OutcomeMemo.key(world, transferer, state, cloud_digest(cloud_n3), action)
+    outcome = memo.get(key)
+    if outcome is not None:
+        world.restore(outcome.snapshot_after)
+        return outcome
+    outcome = apply_demo(world, transferer, cloud_n3, action)
+    memo.put(key, outcome)
+    return outcome
+
+
 @dataclass
 class _Node:
     snapshot: object
@@ -234,6 +263,10 @@ class LookaheadPolicy(Policy):
         self.runner: ExpansionRunner = runner or SequentialRunner()
         self.memo = OutcomeMemo()
 
+    def _memo(self, ctx: StepContext) -> OutcomeMemo:
+        """The step's shared memo if it has one, else this policy's own."""
+        return ctx.memo if ctx.memo is not None else self.memo
+
     def _run_level(
         self,
         ctx: StepContext,
@@ -248,7 +281,8 @@ class LookaheadPolicy(Policy):
             OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)
             for node, a in zip(nodes, actions, strict=True)
         ]
-        known = [self.memo.get(k) for k in keys]
+        memo = self._memo(ctx)
+        known = [memo.get(k) for k in keys]
         misses = [
             early.get((node.tree_id, a)) or ExpansionJob(node.snapshot, node.cloud_n3, a, value)
             for node, a, out in zip(nodes, actions, known, strict=True)
@@ -258,7 +292,7 @@ class LookaheadPolicy(Policy):
         for key, out in zip(keys, known, strict=True):
             if out is None:
                 result = next(fresh)
-                self.memo.put(key, result.outcome)
+                memo.put(key, result.outcome)
                 yield result, False
                 continue
             cloud = q = None
@@ -287,7 +321,7 @@ class LookaheadPolicy(Policy):
             node = known[node_i]
             if (node.tree_id, a) in early:
                 continue
-            if self.memo.get(OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)):
+            if self._memo(ctx).get(OutcomeMemo.key(ctx.world, ctx.transferer, *node.keys, a)):
                 continue  # the level takes it from the memo
             job = ExpansionJob(node.snapshot, node.cloud_n3, a, value)
             early[(node.tree_id, a)] = job
@@ -446,11 +480,14 @@ class SimulationOraclePolicy(Policy):
         ]
         best: tuple[int, int, ActionOutcome] | None = None  # (stage, -rank, outcome)
         stages = {}
+        root_key = snapshot_digest(root) if ctx.memo is not None else None
         t0 = time.perf_counter()
         try:
             for rank, a in enumerate(order):
                 world.restore(root)
-                outcome = apply_demo(world, ctx.transferer, ctx.cloud_n3, a)
+                outcome = execute_with_memo(
+                    ctx.memo, world, ctx.transferer, ctx.cloud_n3, a, root_key
+                )
                 stage = -1 if outcome.exploded else outcome.stage
                 stages[a] = stage
                 if best is None or stage > best[0]:

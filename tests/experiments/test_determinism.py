@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from knotlab.app import cli
-from tests.minilib import mini_tasks, write_mini_files, write_mini_labels
+from tests.minilib import mini_library, mini_tasks, write_mini_files, write_mini_labels
 
 pytestmark = pytest.mark.xdist_group("bench")
 
@@ -32,9 +32,11 @@ def files(tmp_path_factory) -> dict[str, Path]:
     return {"library": lib, "tasks": tasks, "model": model, "dir": d}
 
 
-def _bench(files, out: Path, workers: int) -> dict[tuple[str, str], dict]:
-    """One small noisy bench of nn and greedy; its outcome records without times, by episode."""
-    args = ["bench", "--policies", "nn,greedy", "--tasks", "2", "--max-steps", "2"]
+def _bench(
+    files, out: Path, workers: int, *extra: str, policies: str = "nn,greedy"
+) -> dict[tuple[str, str], dict]:
+    """One small noisy bench (nn and greedy); its outcome records without times, by episode."""
+    args = ["bench", "--policies", policies, "--tasks", "2", "--max-steps", "2", *extra]
     args += ["--noise", "0.002", "--seed", "3", "--workers", str(workers), "--no-progress"]
     args += ["--library", str(files["library"]), "--task-set", str(files["tasks"])]
     assert cli.main([*args, "--model", str(files["model"]), "--out", str(out)]) == 0
@@ -54,6 +56,54 @@ def test_a_bench_rerun_and_another_worker_count_give_identical_outcomes(files, t
             assert set(other[key]) == set(rec)
             for field, value in rec.items():  # field by field, so a failure names the field
                 assert other[key][field] == value, (key, field)
+
+
+def test_sharing_simulations_across_policies_changes_no_outcome(files, tmp_path):
+    """--share-simulations: every policy of a task on one worker with one outcome memo. The
+    episodes are the same to the last bit; only how long they took may differ."""
+    # the searches first: nn and greedy then find their executions simulated already, and must
+    # continue from the restored after-state exactly as if they had executed them
+    policies = "oracle,la1x2,greedy,nn"
+    alone = _bench(files, tmp_path / "alone", 2, policies=policies)
+    shared = _bench(files, tmp_path / "shared", 2, "--share-simulations", policies=policies)
+    assert len(alone) == 8
+    for key, rec in alone.items():
+        assert set(shared[key]) == set(rec)
+        for field, value in rec.items():
+            assert shared[key][field] == value, (key, field)
+
+
+def test_a_shared_memo_simulates_an_execution_once_for_every_policy(monkeypatch):
+    from knotlab.core.experiments.bench import BenchWorker, EpisodeJob, WorkerSpec
+    from knotlab.core.selection import policies
+
+    calls: list[int] = []
+    original = policies.apply_demo
+
+    def counted(world, transferer, cloud, action, *args, **kwargs):
+        calls.append(int(action))
+        return original(world, transferer, cloud, action, *args, **kwargs)
+
+    monkeypatch.setattr(policies, "apply_demo", counted)
+    task = mini_tasks(1, "test")[0]
+    jobs = [
+        EpisodeJob(name, 0, task.task_id, task.start_nodes_k3, 5, 2, 0.0)
+        for name in ("oracle", "nn")
+    ]
+    worker = BenchWorker(WorkerSpec(mini_library(2)))
+    try:
+        alone = [worker.run(job) for job in jobs]
+        n_alone = len(calls)
+        calls.clear()
+        shared = worker.run_group(jobs)
+    finally:
+        worker.close()
+    drop = ("wall_s", "decision_s", "pid")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in shared] == [
+        {k: v for k, v in r.items() if k not in drop} for r in alone
+    ]
+    # nn's executions are among the oracle's candidates: restored, not simulated again
+    assert 0 < len(calls) < n_alone, (len(calls), n_alone)
 
 
 def _oracle_runs(library_path: Path, workers: int) -> list:
