@@ -112,6 +112,23 @@ def install(clock: ComponentClock) -> None:
     clock.wrap(stages, "rope_stage", "knot test")
 
 
+def training_episode(worker: BenchWorker, name: str, task):
+    """One episode of policy ``name`` from a training start, as the bench seeds it; an
+    episode that errored ends the benchmark (its times would not be a result)."""
+    record = run_episode(
+        worker.world,
+        task.start_nodes_k3,
+        worker.policy(name),
+        worker.featurizer,
+        worker.transferer,
+        task_id=task.task_id,
+        seed=episode_seed(0, task.seed),
+    )
+    if record.error:
+        raise SystemExit(f"{name} on {task.task_id} errored: {record.error}")
+    return record
+
+
 def run_policy(worker: BenchWorker, name: str, tasks, clock: ComponentClock) -> dict:
     """Episodes of one policy on the starts; the decision-time split per step."""
     clock.reset()
@@ -121,17 +138,7 @@ def run_policy(worker: BenchWorker, name: str, tasks, clock: ComponentClock) -> 
     expansions = 0
     t0 = time.perf_counter()
     for task in tasks:
-        record = run_episode(
-            worker.world,
-            task.start_nodes_k3,
-            worker.policy(name),
-            worker.featurizer,
-            worker.transferer,
-            task_id=task.task_id,
-            seed=episode_seed(0, task.seed),
-        )
-        if record.error:
-            raise SystemExit(f"{name} on {task.task_id} errored: {record.error}")
+        record = training_episode(worker, name, task)
         successes += record.success
         trace.append([[st.chosen_key for st in record.steps], [st.stage for st in record.steps]])
         decisions += record.decision_times()

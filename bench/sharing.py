@@ -37,13 +37,13 @@ from collections import defaultdict  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from search_speed import training_episode  # noqa: E402  (bench/, this script's folder)
 from tqdm import tqdm  # noqa: E402
 
 from knotlab.app import defaults  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
-from knotlab.core.experiments.bench import BenchWorker, WorkerSpec, episode_seed  # noqa: E402
-from knotlab.core.experiments.episode import run_episode  # noqa: E402
+from knotlab.core.experiments.bench import BenchWorker, WorkerSpec  # noqa: E402
 from knotlab.core.machine import machine_info  # noqa: E402
 from knotlab.core.registration import planner  # noqa: E402
 from knotlab.core.selection import expansion as expansion_mod  # noqa: E402
@@ -123,18 +123,8 @@ def main() -> None:
         for name in names:
             ledger.start(task.task_id, name)
             t0, key_s = time.perf_counter(), ledger.key_seconds
-            record = run_episode(
-                worker.world,
-                task.start_nodes_k3,
-                worker.policy(name),
-                worker.featurizer,
-                worker.transferer,
-                task_id=task.task_id,
-                seed=episode_seed(0, task.seed),
-            )
+            record = training_episode(worker, name, task)
             wall[name] += time.perf_counter() - t0 - (ledger.key_seconds - key_s)
-            if record.error:
-                raise SystemExit(f"{name} on {task.task_id} errored: {record.error}")
             trace[name].append(
                 [[s.chosen_key for s in record.steps], [s.stage for s in record.steps]]
             )

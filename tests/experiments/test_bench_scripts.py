@@ -1,0 +1,67 @@
+"""The bookkeeping of two bench scripts: scan_ab's output comparison, sharing's ledger."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+
+def _bench_module(project_root: Path, name: str):
+    bench = str(project_root / "bench")
+    if bench not in sys.path:  # sharing.py imports search_speed from its own folder
+        sys.path.insert(0, bench)
+    spec = importlib.util.spec_from_file_location(name, project_root / "bench" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_scan_ab_reports_identical_arrays_and_the_largest_relative_difference(
+    project_root, tmp_path
+) -> None:
+    scan_ab = _bench_module(project_root, "scan_ab")
+    before, after = tmp_path / "a.npz", tmp_path / "b.npz"
+    costs = np.array([[1.0, 2.0], [np.inf, 4.0]])
+    moved = costs.copy()
+    moved[0, 1] = 2.0 * (1 + 3e-15)
+    np.savez(before, same=np.arange(3.0), costs=costs)
+    np.savez(after, same=np.arange(3.0), costs=moved)
+    lines = scan_ab._compare(before, after)
+    assert lines[0] == "same: identical"
+    assert lines[1].startswith("costs: 1 of 4 differ, largest relative 3.1e-15")
+    assert "finite/infinite" not in lines[1]
+
+
+def _world(state: float):
+    """A stand-in world whose snapshot digest depends on ``state`` only."""
+    snap = SimpleNamespace(
+        sim_time=state,
+        positions_l3=np.full((2, 3), state),
+        quaternions_l4=np.zeros((2, 4)),
+        linear_velocities_l3=np.zeros((2, 3)),
+        angular_velocities_l3=np.zeros((2, 3)),
+    )
+    return SimpleNamespace(snapshot=lambda: snap)
+
+
+def test_sharing_ledger_books_first_own_and_shared_simulations(project_root) -> None:
+    sharing = _bench_module(project_root, "sharing")
+    ledger = sharing.SharingLedger()
+    apply = ledger.wrap(lambda world, transferer, cloud, action: action)
+    cloud = np.zeros((4, 3))
+    ledger.start("t0", "la2x5")
+    assert apply(_world(0.0), None, cloud, 3) == 3  # first
+    apply(_world(0.0), None, cloud, 3)  # the same policy again: own
+    apply(_world(1.0), None, cloud, 3)  # another state: first
+    ledger.start("t0", "oracle")
+    apply(_world(0.0), None, cloud, 3)  # la2x5 had it: shared
+    apply(_world(0.0), None, cloud + 1, 3)  # another cloud: first
+    ledger.start("t1", "oracle")
+    apply(_world(0.0), None, cloud, 3)  # a new task forgets: first
+    assert ledger.calls["la2x5"] == {"first": 2, "own": 1, "shared": 0}
+    assert ledger.calls["oracle"] == {"first": 2, "own": 0, "shared": 1}
