@@ -2,10 +2,11 @@
 # Reproduce Table I end to end, resumably: oracle labels -> model -> benchmark.
 # Every stage skips work already done (labels in the DB, outcomes in results/), so rerunning
 # after an interruption continues where it stopped. Usage: scripts/table1.sh [LEVEL] [N_TRAIN]
-# Every policy runs on all 500 test tasks of each level (the committed, full-size Table I: about
-# 10 hours of 2 AVX2 cores from scratch; the committed outcomes are resumed, so a clone reruns
-# none of them). FIRST=125 scripts/table1.sh limits la1x10 and the oracle to the first 125 tasks
-# (the paper's count) for a quicker reproduction.
+# Every policy runs on all 500 test tasks of each level (the committed, full-size Table I; the
+# committed outcomes are resumed, so a clone reruns none of them). Its step 3 from scratch,
+# projected from 20-39 sampled tasks per level on a 2-core AVX-512 EPYC with today's code: ~5.0
+# hours of 2 cores, ~3.7 with SHARE=1 (below); AVX2 boxes are slower. FIRST=125 scripts/table1.sh limits la1x10 and the
+# oracle to the first 125 tasks (the paper's count) for a quicker reproduction.
 # Writes only files it makes: results/labels_LEVEL.db, results/labels_oracle_LEVEL.jsonl,
 # results/tries_LEVEL.jsonl, results/model_LEVEL.npz, results/train_LEVEL.txt and
 # results/table1_{main,hard}/.

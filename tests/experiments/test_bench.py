@@ -366,6 +366,32 @@ def test_ray_engine_runs_the_same_jobs_on_actors(files, tmp_path, capsys):
     assert all(r["failure_kind"] != "error" for r in res["outcomes"]["nn"])
 
 
+@pytest.mark.slow
+def test_ray_actors_sharing_simulations_give_the_local_unshared_outcomes(files, tmp_path, capsys):
+    """--share-simulations on Ray: a task's policies go to one actor (`run_group`) together."""
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'ray[default]')")
+    runs = {}
+    for name, extra in (("local", ()), ("ray", ("--engine", "ray", "--share-simulations"))):
+        out = tmp_path / name
+        # the oracle first: nn's executions are then restored from the oracle's simulations
+        args = _bench_args(files, out, *extra, policies="oracle,nn")
+        args[args.index("--workers") + 1] = "2"
+        assert cli.main(args) == 0
+        lines = (out / "outcomes.jsonl").read_text().splitlines()
+        if name == "ray":  # each task's episodes ran on one actor, one after the other
+            pids: dict[str, set] = {}
+            for r in map(json.loads, lines):
+                pids.setdefault(r["task_id"], set()).add(r["pid"])
+            assert all(len(p) == 1 for p in pids.values()), pids
+        untimed = ("wall_s", "decision_s", "pid", "node")
+        runs[name] = {
+            (r["policy"], r["task_id"]): {k: v for k, v in r.items() if k not in untimed}
+            for r in map(json.loads, lines)
+        }
+    assert len(runs["local"]) == 2 * N_TASKS
+    assert runs["ray"] == runs["local"]
+
+
 @pytest.mark.parametrize(
     "extra, message",
     [
