@@ -22,7 +22,8 @@ for lv in main hard; do
   $bin/knotlab bench --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 --level "$lv" \
     --model results/model_main.npz --out "$out" --workers "$workers" --share-simulations &
   bench=$!
-  trap 'kill -TERM "$bench" 2>/dev/null; wait "$bench"; stop_line; exit 143' TERM INT
+  # `|| true`: under set -e a failing kill (the bench already gone) would end the trap early
+  trap 'kill -TERM "$bench" 2>/dev/null || true; wait "$bench" || true; stop_line; exit 143' TERM INT
   wait "$bench"
   trap - TERM INT
   echo "end   $(date -u +%FT%TZ) seconds=$(( $(date +%s) - start ))" >> "$out/segments.log"
