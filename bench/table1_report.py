@@ -5,7 +5,12 @@ it), so partially finished runs are reported with their real counts; an errored 
 counted and flagged, never hidden. Every pair of policies is also compared on the tasks both
 ran: on how many one knots and the other does not, with an exact two-sided sign test.
 
+With ``--run table1_shared`` it reads ``results/table1_shared_<level>/`` instead, adds the wall
+time of the resumed segments in its ``segments.log`` (scripts/table1_shared.sh), and with
+``--against table1`` compares it task by task with the committed run.
+
 Usage: .venv/bin/python bench/table1_report.py [--levels main,hard] [--first 125]
+       [--run table1_shared] [--against table1]
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import argparse
 import itertools
 import json
 import math
+import re
+from dataclasses import dataclass
 from pathlib import Path
 
 from scipy.stats import binomtest
@@ -63,6 +70,79 @@ def paired(a: list[dict], b: list[dict]) -> tuple[int, int, int, float]:
     return len(common), wins, losses, float(p)
 
 
+@dataclass(frozen=True)
+class Segment:
+    """One resumed stretch of a run, from segments.log (seconds None: never stopped cleanly)."""
+
+    start: str
+    cpu: str
+    workers: int
+    commit: str
+    seconds: int | None
+
+
+_START = re.compile(r"^start (\S+) cpu='([^']*)' workers=(\d+) commit=(\S+)")
+_STOP = re.compile(r"^(?:stop|end) +\S+ seconds=(\d+)")
+
+
+def read_segments(text: str) -> list[Segment]:
+    """The segments of a segments.log: each start line with the seconds of the stop/end after it."""
+    segments: list[Segment] = []
+    for line in text.splitlines():
+        if start := _START.match(line):
+            segments.append(Segment(*start.group(1, 2), int(start.group(3)), start.group(4), None))
+        elif (stop := _STOP.match(line)) and segments and segments[-1].seconds is None:
+            last = segments[-1]
+            segments[-1] = Segment(
+                last.start, last.cpu, last.workers, last.commit, int(stop.group(1))
+            )
+    return segments
+
+
+def _segments_summary(path: Path) -> float | None:
+    """Print the run's segments and return their summed seconds (None without a log)."""
+    if not path.exists():
+        return None
+    segments = read_segments(path.read_text())
+    total = sum(s.seconds or 0 for s in segments)
+    cpus = sorted({(s.cpu, s.workers) for s in segments})
+    open_ = sum(s.seconds is None for s in segments)
+    print(
+        f"Wall time: {len(segments)} segments, {total:,} s = {total / 3600:.2f} h "
+        f"({', '.join(f'{c}, {w} workers' for c, w in cpus)})"
+        + (f"; {open_} segment(s) without a stop line, not counted" if open_ else "")
+        + ("; **segments from different machines do not add up**" if len(cpus) > 1 else "")
+        + "\n"
+    )
+    return float(total)
+
+
+def agreement(a: list[dict], b: list[dict]) -> tuple[int, int, int]:
+    """(tasks both ran, same success, same choices at every step) for one policy in two runs."""
+    by_task = {r["task_index"]: r for r in b}
+    common = [r for r in a if r["task_index"] in by_task]
+    same_success = sum(
+        bool(r["success"]) == bool(by_task[r["task_index"]]["success"]) for r in common
+    )
+    same_chosen = sum(r.get("chosen") == by_task[r["task_index"]].get("chosen") for r in common)
+    return len(common), same_success, same_chosen
+
+
+def _agreement_table(runs: dict[str, list[dict]], other: dict[str, list[dict]], name: str) -> None:
+    print(f"Against `results/{name}_*` (the same tasks):\n")
+    print("| policy | tasks both ran | same success | same demo every step | knots here / there |")
+    print("|---|---|---|---|---|")
+    for policy, recs in runs.items():
+        if policy not in other:
+            continue
+        n, same, chosen = agreement(recs, other[policy])
+        tasks = {r["task_index"] for r in recs} & {r["task_index"] for r in other[policy]}
+        here = sum(r["success"] for r in recs if r["task_index"] in tasks)
+        there = sum(r["success"] for r in other[policy] if r["task_index"] in tasks)
+        print(f"| {policy} | {n} | {same} | {chosen} | {here} / {there} |")
+    print()
+
+
 def _paired_table(runs: dict[str, list[dict]], policies: list[str]) -> None:
     print("| A vs B | tasks both ran | A knots, B not | B knots, A not | sign test p |")
     print("|---|---|---|---|---|")
@@ -78,13 +158,18 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--levels", default="main,hard")
     ap.add_argument("--first", type=int, default=125, help="also report the first K tasks")
+    ap.add_argument("--run", default="table1", help="results/<RUN>_<level>/ (default table1)")
+    ap.add_argument("--against", default=None, help="compare task by task with results/<RUN>_*")
     args = ap.parse_args()
+    total_s = 0.0
     for level in args.levels.split(","):
-        runs = _rows(ROOT / "results" / f"table1_{level}" / "outcomes.jsonl")
+        out = ROOT / "results" / f"{args.run}_{level}"
+        runs = _rows(out / "outcomes.jsonl")
         if not runs:
             print(f"## {level}: no runs yet\n")
             continue
-        print(f"## {level} level (test set)\n")
+        print(f"## {level} level (test set, results/{args.run}_{level})\n")
+        total_s += _segments_summary(out / "segments.log") or 0.0
         print(
             f"| policy | all tasks run | first {args.first} tasks | paper | decision s/step "
             "| mean episode s |"
@@ -107,6 +192,11 @@ def main() -> int:
             f"(at best {hours / 2:.1f} of wall time on 2 workers).\n"
         )
         _paired_table(runs, policies)
+        if args.against:
+            other = _rows(ROOT / "results" / f"{args.against}_{level}" / "outcomes.jsonl")
+            _agreement_table({p: runs[p] for p in policies}, other, args.against)
+    if total_s:
+        print(f"Segments of all levels: {total_s:,.0f} s = {total_s / 3600:.2f} h of wall time.")
     return 0
 
 
