@@ -117,15 +117,16 @@ def _segments_summary(path: Path) -> float | None:
     return float(total)
 
 
-def agreement(a: list[dict], b: list[dict]) -> tuple[int, int, int]:
-    """(tasks both ran, same success, same choices at every step) for one policy in two runs."""
+def agreement(a: list[dict], b: list[dict]) -> tuple[int, int, int, int, int]:
+    """(tasks both ran, same success, same choices at every step, knots in a, knots in b) on
+    those tasks, for one policy in two runs."""
     by_task = {r["task_index"]: r for r in b}
-    common = [r for r in a if r["task_index"] in by_task]
-    same_success = sum(
-        bool(r["success"]) == bool(by_task[r["task_index"]]["success"]) for r in common
-    )
-    same_chosen = sum(r.get("chosen") == by_task[r["task_index"]].get("chosen") for r in common)
-    return len(common), same_success, same_chosen
+    pairs = [(r, by_task[r["task_index"]]) for r in a if r["task_index"] in by_task]
+    same_success = sum(bool(x["success"]) == bool(y["success"]) for x, y in pairs)
+    same_chosen = sum(x.get("chosen") == y.get("chosen") for x, y in pairs)
+    knots_a = sum(bool(x["success"]) for x, _ in pairs)
+    knots_b = sum(bool(y["success"]) for _, y in pairs)
+    return len(pairs), same_success, same_chosen, knots_a, knots_b
 
 
 def _agreement_table(runs: dict[str, list[dict]], other: dict[str, list[dict]], name: str) -> None:
@@ -135,10 +136,7 @@ def _agreement_table(runs: dict[str, list[dict]], other: dict[str, list[dict]], 
     for policy, recs in runs.items():
         if policy not in other:
             continue
-        n, same, chosen = agreement(recs, other[policy])
-        tasks = {r["task_index"] for r in recs} & {r["task_index"] for r in other[policy]}
-        here = sum(r["success"] for r in recs if r["task_index"] in tasks)
-        there = sum(r["success"] for r in other[policy] if r["task_index"] in tasks)
+        n, same, chosen, here, there = agreement(recs, other[policy])
         print(f"| {policy} | {n} | {same} | {chosen} | {here} / {there} |")
     print()
 

@@ -1,6 +1,6 @@
 # Sourced by scripts that run `knotlab bench` on a two-node Ray cluster started on this machine
 # (one CPU per node, so each node runs one bench actor at a time). Defines ray_up / ray_down and
-# RAY_ADDRESS; the caller sets `bin` (the venv's bin folder). On real machines run
+# RAY_ADDRESS_LOCAL (the head's address); the caller sets `bin` (the venv's bin folder). On real machines run
 # `ray start --address HEAD:PORT` on each node instead of ray_up's second line.
 port=${RAY_PORT:-6390}
 RAY_ADDRESS_LOCAL="127.0.0.1:$port"

@@ -2,29 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-
-def _bench_module(project_root: Path, name: str):
-    bench = str(project_root / "bench")
-    if bench not in sys.path:  # sharing.py imports search_speed from its own folder
-        sys.path.insert(0, bench)
-    spec = importlib.util.spec_from_file_location(name, project_root / "bench" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.bench_modules import load_bench_module
 
 
 def test_scan_ab_reports_identical_arrays_and_the_largest_relative_difference(
     project_root, tmp_path
 ) -> None:
-    scan_ab = _bench_module(project_root, "scan_ab")
+    scan_ab = load_bench_module(project_root, "scan_ab")
     before, after = tmp_path / "a.npz", tmp_path / "b.npz"
     costs = np.array([[1.0, 2.0], [np.inf, 4.0]])
     moved = costs.copy()
@@ -50,7 +38,7 @@ def _world(state: float):
 
 
 def test_sharing_ledger_books_first_own_and_shared_simulations(project_root) -> None:
-    sharing = _bench_module(project_root, "sharing")
+    sharing = load_bench_module(project_root, "sharing")
     ledger = sharing.SharingLedger()
     apply = ledger.wrap(lambda world, transferer, cloud, action: action)
     cloud = np.zeros((4, 3))

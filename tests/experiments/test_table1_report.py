@@ -2,22 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-
-def _report_module(project_root: Path):
-    spec = importlib.util.spec_from_file_location(
-        "table1_report", project_root / "bench" / "table1_report.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while being built
-    spec.loader.exec_module(module)
-    return module
+from tests.bench_modules import load_bench_module
 
 
 def _recs(successes: dict[int, bool]) -> list[dict]:
@@ -26,7 +13,7 @@ def _recs(successes: dict[int, bool]) -> list[dict]:
 
 def test_paired_counts_only_common_tasks_and_gives_the_exact_sign_test(project_root) -> None:
     """Discordant tasks counted each way on the tasks both ran; p is the exact binomial test."""
-    report = _report_module(project_root)
+    report = load_bench_module(project_root, "table1_report")
     a = _recs({0: True, 1: True, 2: False, 3: True, 4: True, 5: True})
     b = _recs({0: True, 1: False, 2: True, 3: False, 4: False})  # task 5 only in a
     n, a_only, b_only, p = report.paired(a, b)
@@ -37,7 +24,7 @@ def test_paired_counts_only_common_tasks_and_gives_the_exact_sign_test(project_r
 
 def test_segments_pair_each_start_with_its_stop_and_keep_unstopped_ones_open(project_root) -> None:
     """Three resumed stretches: two stopped (by the trap, at the end), one killed."""
-    report = _report_module(project_root)
+    report = load_bench_module(project_root, "table1_report")
     log = (
         "start 2026-12-03T09:46:10Z cpu='AMD EPYC avx512' workers=2 commit=5b8053e\n"
         "stop  2026-12-03T10:33:46Z seconds=2856 (written by hand)\n"
@@ -59,7 +46,7 @@ def test_segments_pair_each_start_with_its_stop_and_keep_unstopped_ones_open(pro
 
 def test_agreement_compares_success_and_choices_on_common_tasks(project_root) -> None:
     """Per policy: tasks both runs have, how many end alike, how many chose the same demos."""
-    report = _report_module(project_root)
+    report = load_bench_module(project_root, "table1_report")
     here = [
         {"task_index": 0, "success": True, "chosen": ["a", "b"]},
         {"task_index": 1, "success": False, "chosen": ["a", "c"]},
@@ -71,4 +58,4 @@ def test_agreement_compares_success_and_choices_on_common_tasks(project_root) ->
         {"task_index": 1, "success": False, "chosen": ["a", "d"]},
         {"task_index": 2, "success": False, "chosen": ["d", "e"]},
     ]
-    assert report.agreement(here, there) == (3, 2, 1)
+    assert report.agreement(here, there) == (3, 2, 1, 2, 1)  # knots here / there on tasks 0-2

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import signal
@@ -13,18 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.bench_modules import load_bench_module
+
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="a bash script")
-
-
-def _report(project_root: Path):
-    spec = importlib.util.spec_from_file_location(
-        "table1_report_for_scripts", project_root / "bench" / "table1_report.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _script(project_root: Path, results: Path, tasks: int) -> list[str]:
@@ -43,7 +33,7 @@ def _episodes(path: Path) -> list[dict]:
 
 def test_table1_shared_logs_each_segment_and_resumes_after_a_stop(project_root, tmp_path) -> None:
     """A TERM mid-run leaves a stop line and the finished episodes; a rerun only adds the rest."""
-    report = _report(project_root)
+    report = load_bench_module(project_root, "table1_report")
     main = tmp_path / "table1_shared_main"
     run = subprocess.Popen(_script(project_root, tmp_path, 3), start_new_session=True)
     deadline = time.monotonic() + 240
