@@ -223,8 +223,21 @@ def rpm_kernel(
     costs,
     corr,
     failed,
+    first_only,
+    pre_xhat,
+    pre_yhat,
+    pre_wf,
+    pre_wg,
+    pre_done,
 ):  # pragma: no cover - compiled
-    """Bidirectional TPS-RPM for every demo b of a chunk against the scene (see `rpm_batch`)."""
+    """Bidirectional TPS-RPM for every demo b of a chunk against the scene (see `rpm_batch`).
+
+    The first iteration's affinity, Sinkhorn and targets do not read the scene's TPS basis, so
+    they can run while it is being factorised: with `first_only` the kernel stops each demo a
+    there and keeps its targets and inlier masses in pre_*[a], setting pre_done[a]; a later
+    call (first_only False) resumes a demo with pre_done[a] from them, with the same values in
+    the same order as an uninterrupted run (bit-identical, tested). pre_* may be empty (0 rows).
+    """
     dt_one = cst[_K_ONE]
     zero = cst[_K_ZERO]
     prior, cutoff, tiny = cst[_K_PRIOR], cst[_K_CUTOFF], cst[_K_TINY]
@@ -275,73 +288,97 @@ def rpm_kernel(
         ef[:, :k] = zero
         eg[:, :] = zero
         ok = True
+        resume = pre_done.shape[0] > 0 and pre_done[a] and not first_only
         for it in range(lam_i.shape[0]):
-            inv2t = inv2t_i[it]
-            # 1. affinity p_ij = exp(-(|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T), exponent capped
-            for i in range(n):
-                _distance_row(fx, xs, ys, gy, srow, i, m, inv2t)
-                _exp_neg_row(srow, p, i, bits, bits_f, e_bias, e_shift, cst, m)
-            # p^T too: with both layouts every product below is an axpy along contiguous
-            # memory, which vectorises under strict IEEE (a dot-product reduction does not)
-            for i in range(n):
-                for j in range(m):
-                    pt[j, i] = p[i, j]
-            if stop_after == 0:
-                continue
-            # 2. Sinkhorn with an outlier row and column, rows first (GPU order); one pass
-            #    over p per sweep: row i's scale r_i, then its share of the column sums
-            c[:] = dt_one
-            c_out = dt_one
-            r_out = zero
-            for _ in range(sinkhorn_iters):
-                csum = zero
-                for j in range(m):
-                    csum += c[j]
-                r_out = a_out / (prior * csum + corner * c_out)
-                rd[:n] = zero
-                _add_weighted_rows(pt, c, rd, m, n)
+            if it == 0 and resume:
                 for i in range(n):
-                    r[i] = dt_one / (rd[i] + prior * c_out)
-                col[:] = zero
-                _add_weighted_rows(p, r, col, n, m)
-                rsum = zero
-                for i in range(n):
-                    rsum += r[i]
+                    wf[i] = pre_wf[a, i]
+                    for d in range(3):
+                        xhat[d, i] = pre_xhat[a, d, i]
                 for j in range(m):
-                    c_prev[j] = c[j]
-                    c[j] = dt_one / (col[j] + prior * r_out)
-                c_out = b_out / (prior * rsum + corner * r_out)
-            if stop_after == 1:
-                continue
-            # 3. targets: forward from the row-normalised match r p c_prev, backward from the
-            #    column-normalised one r p c
-            for j in range(m):
-                for d in range(4):
-                    cy[d, j] = ys[d, j] * c_prev[j]
-            fwd[:, :n] = zero
-            bwd[:, :] = zero
-            for i in range(n):
-                for d in range(3):
-                    rx[d, i] = r[i] * xs[d, i]
-                rx[3, i] = r[i]
-            _add_weighted_rows4(
-                pt, cy[0], cy[1], cy[2], cy[3], fwd[0], fwd[1], fwd[2], fwd[3], m, n
-            )
-            _add_weighted_rows4(p, rx[0], rx[1], rx[2], rx[3], bwd[0], bwd[1], bwd[2], bwd[3], n, m)
-            for i in range(n):
-                wf[i] = r[i] * fwd[3, i]
-                inlier = wf[i] >= cutoff or rule == 2
-                for d in range(3):
-                    val = r[i] * fwd[d, i] if rule == 1 else fwd[d, i] / max(fwd[3, i], tiny)
-                    xhat[d, i] = val if inlier else fx[d, i]
-            for j in range(m):
-                wg[j] = c[j] * bwd[3, j]
-                inlier = wg[j] >= cutoff or rule == 2
-                for d in range(3):
-                    val = c[j] * bwd[d, j] if rule == 1 else bwd[d, j] / max(bwd[3, j], tiny)
-                    yhat[d, j] = val if inlier else gy[d, j]
-            if stop_after == 2:
-                continue
+                    wg[j] = pre_wg[a, j]
+                    for d in range(3):
+                        yhat[d, j] = pre_yhat[a, d, j]
+            else:
+                inv2t = inv2t_i[it]
+                # 1. affinity p_ij = exp(-(|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T), exponent capped
+                for i in range(n):
+                    _distance_row(fx, xs, ys, gy, srow, i, m, inv2t)
+                    _exp_neg_row(srow, p, i, bits, bits_f, e_bias, e_shift, cst, m)
+                # p^T too: with both layouts every product below is an axpy along contiguous
+                # memory, which vectorises under strict IEEE (a dot-product reduction does not)
+                for i in range(n):
+                    for j in range(m):
+                        pt[j, i] = p[i, j]
+                if stop_after == 0:
+                    continue
+                # 2. Sinkhorn with an outlier row and column, rows first (GPU order); one pass
+                #    over p per sweep: row i's scale r_i, then its share of the column sums
+                c[:] = dt_one
+                c_out = dt_one
+                r_out = zero
+                for _ in range(sinkhorn_iters):
+                    csum = zero
+                    for j in range(m):
+                        csum += c[j]
+                    r_out = a_out / (prior * csum + corner * c_out)
+                    rd[:n] = zero
+                    _add_weighted_rows(pt, c, rd, m, n)
+                    for i in range(n):
+                        r[i] = dt_one / (rd[i] + prior * c_out)
+                    col[:] = zero
+                    _add_weighted_rows(p, r, col, n, m)
+                    rsum = zero
+                    for i in range(n):
+                        rsum += r[i]
+                    for j in range(m):
+                        c_prev[j] = c[j]
+                        c[j] = dt_one / (col[j] + prior * r_out)
+                    c_out = b_out / (prior * rsum + corner * r_out)
+                if stop_after == 1:
+                    continue
+                # 3. targets: forward from the row-normalised match r p c_prev, backward from the
+                #    column-normalised one r p c
+                for j in range(m):
+                    for d in range(4):
+                        cy[d, j] = ys[d, j] * c_prev[j]
+                fwd[:, :n] = zero
+                bwd[:, :] = zero
+                for i in range(n):
+                    for d in range(3):
+                        rx[d, i] = r[i] * xs[d, i]
+                    rx[3, i] = r[i]
+                _add_weighted_rows4(
+                    pt, cy[0], cy[1], cy[2], cy[3], fwd[0], fwd[1], fwd[2], fwd[3], m, n
+                )
+                _add_weighted_rows4(
+                    p, rx[0], rx[1], rx[2], rx[3], bwd[0], bwd[1], bwd[2], bwd[3], n, m
+                )
+                for i in range(n):
+                    wf[i] = r[i] * fwd[3, i]
+                    inlier = wf[i] >= cutoff or rule == 2
+                    for d in range(3):
+                        val = r[i] * fwd[d, i] if rule == 1 else fwd[d, i] / max(fwd[3, i], tiny)
+                        xhat[d, i] = val if inlier else fx[d, i]
+                for j in range(m):
+                    wg[j] = c[j] * bwd[3, j]
+                    inlier = wg[j] >= cutoff or rule == 2
+                    for d in range(3):
+                        val = c[j] * bwd[d, j] if rule == 1 else bwd[d, j] / max(bwd[3, j], tiny)
+                        yhat[d, j] = val if inlier else gy[d, j]
+                if first_only:
+                    for i in range(n):
+                        pre_wf[a, i] = wf[i]
+                        for d in range(3):
+                            pre_xhat[a, d, i] = xhat[d, i]
+                    for j in range(m):
+                        pre_wg[a, j] = wg[j]
+                        for d in range(3):
+                            pre_yhat[a, d, j] = yhat[d, j]
+                    pre_done[a] = True
+                    break
+                if stop_after == 2:
+                    continue
             # 4. TPS fits of f and g
             lam = lam_i[it]
             if rule == 2:
@@ -354,6 +391,8 @@ def rpm_kernel(
                 _fit_unweighted(g_y, mu_y, h_y, yhat, lam, dt_one, eg, m, ky)
             _apply(gt_akn[a], ef, fx, n, k)
             _apply(gt_y, eg, gy, m, ky)
+        if first_only:
+            continue
         failed[b] = not ok
         if stop_after >= 4:
             weighted = rule == 2

@@ -109,6 +109,12 @@ class CloudSide:
         )
 
 
+def normalise_cloud(cloud: np.ndarray, params: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
+    """(median centre, cloud translated by it and divided by scale_m): the normalised cloud."""
+    centre = np.median(cloud, axis=0)
+    return centre, (cloud - centre) / params.scale_m
+
+
 def _build_side(
     clouds: Sequence[np.ndarray | None], reasons: Sequence[str], params: RegistrationParams
 ) -> CloudSide:
@@ -133,8 +139,7 @@ def _build_side(
         kept.append(np.zeros((0, 3)) if cloud is None else cloud)
         if cloud is None:
             continue
-        centre = np.median(cloud, axis=0)
-        x = (cloud - centre) / params.scale_m
+        centre, x = normalise_cloud(cloud, params)
         try:
             basis = tps_basis(x, params.normalised_rot_coef)
         except SolverError as exc:
@@ -249,7 +254,11 @@ class _PhaseClock:
 
 @dataclass(frozen=True, eq=False)
 class KernelInputs:
-    """What every chunk of one scan hands the kernel: scene arrays, schedule and constants."""
+    """What every chunk of one scan hands the kernel: scene arrays, schedule and constants.
+
+    Built before the scene's basis is factorised (`first_iteration_inputs`), the basis arrays
+    are zeros: only the first iteration's affinity, Sinkhorn and targets may run on them.
+    """
 
     dtype: np.dtype
     y_m3: np.ndarray
@@ -257,11 +266,27 @@ class KernelInputs:
     gt_y: np.ndarray
     mu_y: np.ndarray
     h_y: np.ndarray
+    mu_y64: np.ndarray  # float64, for the costs
+    theta_y64: np.ndarray
     lams: np.ndarray
     inv2t: np.ndarray
     cst: np.ndarray
     e_bias: np.floating
     e_shift: np.floating
+
+
+def _schedule_inputs(dt: np.dtype, params: RegistrationParams) -> dict:
+    """The kernel inputs that do not depend on the scene: schedule and constants."""
+    lams, temps = params.normalised_schedule()
+    e_bias, e_shift = exp_bits_constants(dt)
+    return dict(
+        dtype=dt,
+        lams=lams.astype(dt),
+        inv2t=(0.5 / temps).astype(dt),
+        cst=kernel_constants(dt, params),
+        e_bias=e_bias,
+        e_shift=e_shift,
+    )
 
 
 def kernel_inputs(scene: CloudSide, params: RegistrationParams) -> KernelInputs:
@@ -270,21 +295,73 @@ def kernel_inputs(scene: CloudSide, params: RegistrationParams) -> KernelInputs:
     m = int(scene.n_a[0])
     ky = m + 4
     scene_cast = scene.cast(dt)
-    lams, temps = params.normalised_schedule()
-    e_bias, e_shift = exp_bits_constants(dt)
     return KernelInputs(
-        dtype=dt,
         y_m3=np.ascontiguousarray(scene_cast["x_an3"][0, :m]),
         g_y=np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky]),
         gt_y=np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m]),
         mu_y=np.ascontiguousarray(scene_cast["mu_ak"][0, :ky]),
         h_y=np.ascontiguousarray(scene_cast["h_ak3"][0, :ky]),
-        lams=lams.astype(dt),
-        inv2t=(0.5 / temps).astype(dt),
-        cst=kernel_constants(dt, params),
-        e_bias=e_bias,
-        e_shift=e_shift,
+        mu_y64=scene.mu_ak[0],
+        theta_y64=scene.theta_apk[0],
+        **_schedule_inputs(dt, params),
     )
+
+
+def first_iteration_inputs(y_m3: np.ndarray, params: RegistrationParams) -> KernelInputs:
+    """Kernel inputs for the first iteration's first phases, from the normalised scene alone."""
+    dt = np.dtype(params.dtype)
+    m = len(y_m3)
+    ky = m + 4
+    return KernelInputs(
+        y_m3=np.ascontiguousarray(y_m3, dtype=dt),  # the values scene.cast gives: one rounding
+        g_y=np.zeros((m, ky), dt),
+        gt_y=np.zeros((ky, m), dt),
+        mu_y=np.zeros(ky, dt),
+        h_y=np.zeros((ky, 3), dt),
+        mu_y64=np.zeros(ky),
+        theta_y64=np.zeros((4 + m, ky)),
+        **_schedule_inputs(dt, params),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class FirstIteration:
+    """First-iteration targets and inlier masses per demo, kept by a `first_only` kernel run.
+
+    done[a] says which demos have them; a scan resumes those demos from here (bit-identical
+    to running them whole). Arrays in the RPM dtype, over all demos of the library.
+    """
+
+    xhat_a3n: np.ndarray
+    yhat_a3m: np.ndarray
+    wf_an: np.ndarray
+    wg_am: np.ndarray
+    done_a: np.ndarray
+
+    @staticmethod
+    def allocate(n_demos: int, n_max: int, m: int, dt: np.dtype) -> FirstIteration:
+        """Room for every demo of a library, none done."""
+        return FirstIteration(
+            np.zeros((n_demos, 3, n_max), dt),
+            np.zeros((n_demos, 3, m), dt),
+            np.zeros((n_demos, n_max), dt),
+            np.zeros((n_demos, m), dt),
+            np.zeros(n_demos, np.bool_),
+        )
+
+    @staticmethod
+    def none(dt: np.dtype) -> FirstIteration:
+        """No demo done (what a scan without an early start passes the kernel)."""
+        return FirstIteration.allocate(0, 0, 0, dt)
+
+
+def can_start_early(params: RegistrationParams, keep_corr: bool) -> bool:
+    """Whether a scan may run the first iteration before the scene basis exists.
+
+    A resumed demo does not keep the first iteration's match, so the final costs must come from
+    a later iteration (n_iter >= 2) and no correspondence may be asked for.
+    """
+    return params.n_iter >= 2 and not keep_corr
 
 
 def rpm_batch(
@@ -296,33 +373,79 @@ def rpm_batch(
     timings: dict[str, float] | None = None,
     stop_after: int = len(PHASES) - 1,
     inputs: KernelInputs | None = None,
+    first: FirstIteration | None = None,
 ) -> _ChunkOut:
-    """Run bidirectional TPS-RPM for demos idx against the scene (one cloud) in one batch."""
+    """Run bidirectional TPS-RPM for demos idx against the scene (one cloud) in one batch.
+
+    `first`: demos with first.done_a resume from their kept first-iteration targets.
+    """
     clock = _PhaseClock(timings)
     if inputs is None:
         inputs = kernel_inputs(scene, params)
     dt = inputs.dtype
-    weighted = params.target_rule == "weighted"
-    n_valid = demo.n_a[idx]
-    n = max(int(n_valid.max()), 1)
-    k = n + 4
-    cast = demo.cast(dt)
-    m = int(scene.n_a[0])
-    ky = m + 4
+    if first is None:
+        first = FirstIteration.none(dt)
+    elif first.done_a[idx].any() and not can_start_early(params, keep_corr):
+        raise InvalidInputError("a resumed first iteration needs n_iter >= 2 and no correspondence")
+    n = max(int(demo.n_a[idx].max()), 1)
+    m = inputs.y_m3.shape[0]
     nb = len(idx)
-    frac = params.outlier_frac
-    corner_coef = frac if not weighted else params.outlier_prior
-    a_out = np.array(m * frac, dt)
-    b_out = (n_valid * frac).astype(dt)
-    corner = (corner_coef * np.sqrt(n_valid * m)).astype(dt)
-    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)  # scratch, one per call
-
-    e_f = np.zeros((nb, k, 3), dt)
-    e_g = np.zeros((nb, ky, 3), dt)
+    e_f = np.zeros((nb, n + 4, 3), dt)
+    e_g = np.zeros((nb, m + 4, 3), dt)
     costs = np.zeros((nb, len(COST_NAMES)))
     corr = np.zeros((nb, n, m) if keep_corr else (0, 0, 0), dt)
     bad = np.zeros(nb, np.bool_)
     clock.tick("setup")
+    _run_kernel(demo, idx, inputs, params, stop_after, (e_f, e_g, costs, corr, bad), False, first)
+    clock.tick("rpm kernel")
+    failed = {int(b): "weighted TPS system singular (no inlier mass?)" for b in np.flatnonzero(bad)}
+
+    e_f64, e_g64 = e_f.astype(float), e_g.astype(float)
+    return _ChunkOut(e_f64, e_g64, costs, corr.astype(float) if keep_corr else None, failed)
+
+
+def first_iteration_batch(
+    demo: CloudSide,
+    idx: np.ndarray,
+    inputs: KernelInputs,
+    params: RegistrationParams,
+    first: FirstIteration,
+) -> None:
+    """The first iteration's affinity, Sinkhorn and targets for demos idx, kept in `first`.
+
+    Needs only `first_iteration_inputs` (no scene basis), so it can run while that is factorised.
+    """
+    dt = inputs.dtype
+    no_outputs = (
+        np.zeros((0, 0, 3), dt),
+        np.zeros((0, 0, 3), dt),
+        np.zeros((0, len(COST_NAMES))),
+        np.zeros((0, 0, 0), dt),
+        np.zeros(0, np.bool_),
+    )
+    _run_kernel(demo, idx, inputs, params, len(PHASES) - 1, no_outputs, True, first)
+
+
+def _run_kernel(
+    demo: CloudSide,
+    idx: np.ndarray,
+    inputs: KernelInputs,
+    params: RegistrationParams,
+    stop_after: int,
+    outputs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    first_only: bool,
+    first: FirstIteration,
+) -> None:
+    """Call `rpm_kernel` for demos idx: the per-chunk arguments around the scan-wide inputs."""
+    dt = inputs.dtype
+    weighted = params.target_rule == "weighted"
+    n_valid = demo.n_a[idx]
+    cast = demo.cast(dt)
+    m = inputs.y_m3.shape[0]
+    frac = params.outlier_frac
+    corner_coef = frac if not weighted else params.outlier_prior
+    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)  # scratch, one per call
+    e_f, e_g, costs, corr, bad = outputs
     rpm_kernel(
         np.ascontiguousarray(idx, dtype=np.int64),
         cast["x_an3"],
@@ -343,28 +466,29 @@ def rpm_batch(
         bits.view(dt),
         inputs.e_bias,
         inputs.e_shift,
-        a_out,
-        b_out,
-        corner,
+        np.array(m * frac, dt),
+        (n_valid * frac).astype(dt),
+        (corner_coef * np.sqrt(n_valid * m)).astype(dt),
         TARGET_RULES[params.target_rule],
         params.sinkhorn_iters,
         stop_after,
         demo.mu_ak,
         demo.theta_apk,
-        scene.mu_ak[0],
-        scene.theta_apk[0],
+        inputs.mu_y64,
+        inputs.theta_y64,
         float(params.scale_m),
         e_f,
         e_g,
         costs,
         corr,
         bad,
+        first_only,
+        first.xhat_a3n,
+        first.yhat_a3m,
+        first.wf_an,
+        first.wg_am,
+        first.done_a,
     )
-    clock.tick("rpm kernel")
-    failed = {int(b): "weighted TPS system singular (no inlier mass?)" for b in np.flatnonzero(bad)}
-
-    e_f64, e_g64 = e_f.astype(float), e_g.astype(float)
-    return _ChunkOut(e_f64, e_g64, costs, corr.astype(float) if keep_corr else None, failed)
 
 
 # ----------------------------------------------------------------------------- results
@@ -464,11 +588,13 @@ def run_chunks(
     keep_corr: bool,
     timings: dict[str, float] | None = None,
     pool: Executor | None = None,
+    first: FirstIteration | None = None,
 ) -> ScanResult:
     """Registers the scene against every demo, in chunks (independent batches) over workers.
 
     `pool`: an executor with n_workers threads to reuse (LibraryRegistrar keeps one); without
-    it a pool is started and stopped for this call (~0.7 ms).
+    it a pool is started and stopped for this call (~0.7 ms). `first`: demos whose first
+    iteration ran early (`first_iteration_batch`) resume from it.
     """
     n_demos = len(demo)
     demo.cast(np.dtype(params.dtype))  # convert once, before any worker thread reads it
@@ -479,7 +605,9 @@ def run_chunks(
     def work(idx: np.ndarray) -> _ChunkOut:
         # A demo whose fit overflows is detected below and reported; no warning spam for it.
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return rpm_batch(demo, idx, scene, params, keep_corr, timings, inputs=inputs)
+            return rpm_batch(
+                demo, idx, scene, params, keep_corr, timings, inputs=inputs, first=first
+            )
 
     if n_workers > 1 and len(chunks) > 1:
         # The kernel releases the GIL, so threads share one copy of the library.
@@ -518,9 +646,14 @@ def run_chunks(
     return ScanResult(params, costs, ok, tuple(reason), e_f, e_g, corr, demo, scene)
 
 
-def scene_side(scene_cloud: np.ndarray, params: RegistrationParams) -> CloudSide:
-    """Scene side: a bad scene cloud raises (it concerns every demo)."""
-    cloud = clean_cloud(scene_cloud, "scene cloud", params.max_points)
+def scene_side(
+    scene_cloud: np.ndarray, params: RegistrationParams, *, cleaned: bool = False
+) -> CloudSide:
+    """Scene side: a bad scene cloud raises (it concerns every demo).
+
+    cleaned: the cloud already went through `clean_cloud` (it is not cleaned twice).
+    """
+    cloud = scene_cloud if cleaned else clean_cloud(scene_cloud, "scene cloud", params.max_points)
     side = _build_side([cloud], [""], params)
     if not side.ok_a[0]:
         raise SolverError(f"scene cloud: {side.reason_a[0]}")

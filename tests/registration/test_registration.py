@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from knotlab.core.errors import InvalidInputError
+from knotlab.core.errors import InvalidInputError, SolverError
 from knotlab.core.registration import (
     COST_NAMES,
     EXACT,
@@ -115,6 +115,64 @@ def test_scan_results_do_not_depend_on_chunks_or_workers(params: RegistrationPar
             np.testing.assert_array_equal(getattr(run, name), getattr(runs[0], name), name)
     single = register(demos[3], scene, params)
     np.testing.assert_array_equal(single.costs.as_array(), runs[0].costs_ac[3])
+
+
+@pytest.mark.parametrize("params", [SCAN, replace(EXACT, n_iter=8)], ids=["scan", "exact"])
+def test_first_iteration_run_early_resumes_bit_identically(params: RegistrationParams) -> None:
+    """Demos whose first iteration ran before the scene basis existed end exactly as a plain scan.
+
+    Forced here (every other demo, uneven clouds, a bad demo skipped); in a 2-worker scan which
+    demos run early depends on timing, so the scan itself is checked on its outputs too.
+    """
+    from knotlab.core.registration.params import clean_cloud
+    from knotlab.core.registration.rpm import (
+        FirstIteration,
+        first_iteration_batch,
+        first_iteration_inputs,
+        normalise_cloud,
+        run_chunks,
+        scene_side,
+    )
+
+    demos = _library(8, [60, 120, 95, 75, 110, 100, 90, 85, 70])
+    demos[4] = np.ones((9, 3))  # not ok: never run early, reported as before
+    rng = np.random.default_rng(9)
+    scene = corrupt(rng, smooth_warp(rng, 0.03)(demos[2]))
+    plain = LibraryRegistrar(params, chunk_size=3).scan(scene, demos)
+    registrar = LibraryRegistrar(params)
+    demo = registrar.prepare(demos)
+    cloud = clean_cloud(scene, "scene cloud", params.max_points)
+    side = scene_side(cloud, params, cleaned=True)
+    dt = np.dtype(params.dtype)
+    first = FirstIteration.allocate(len(demo), demo.x_an3.shape[1], int(side.n_a[0]), dt)
+    inputs = first_iteration_inputs(normalise_cloud(cloud, params)[1], params)
+    first_iteration_batch(demo, np.array([0, 2, 3, 6, 8]), inputs, params, first)
+    assert first.done_a.tolist() == [True, False, True, True, False, False, True, False, True]
+    resumed = run_chunks(
+        demo, side, params, chunk_size=2, n_workers=1, keep_corr=False, first=first
+    )
+    for name in ("costs_ac", "ok_a", "e_f_ak3", "e_g_ak3"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(plain, name), err_msg=name)
+    assert resumed.reason_a == plain.reason_a
+    early = LibraryRegistrar(params, chunk_size=2, n_workers=2)
+    for _ in range(3):
+        scanned = early.scan(scene, demos)
+        np.testing.assert_array_equal(scanned.costs_ac, plain.costs_ac)
+        np.testing.assert_array_equal(scanned.e_g_ak3, plain.e_g_ak3)
+    early.close()
+    with pytest.raises(InvalidInputError, match="no correspondence"):
+        run_chunks(demo, side, params, chunk_size=2, n_workers=1, keep_corr=True, first=first)
+
+
+def test_bad_scene_with_an_early_first_iteration_raises_and_leaves_the_registrar_usable() -> None:
+    demos = _library(10, [80, 90, 100])
+    registrar = LibraryRegistrar(SCAN, n_workers=2)
+    # a clean cloud whose basis fails: found only after the early first iteration started
+    with pytest.raises(SolverError, match="scene cloud: TPS normal matrix is singular"):
+        registrar.scan(demos[0] * 1e30, demos)
+    good = registrar.scan(demos[1] + 0.01, demos)
+    assert good.ok_a.all() and int(np.argmin(good.nn_cost_a)) == 1
+    registrar.close()
 
 
 @pytest.mark.parametrize(
