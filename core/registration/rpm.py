@@ -385,8 +385,12 @@ def rpm_batch(
     dt = inputs.dtype
     if first is None:
         first = FirstIteration.none(dt)
-    elif first.done_a[idx].any() and not can_start_early(params, keep_corr):
-        raise InvalidInputError("a resumed first iteration needs n_iter >= 2 and no correspondence")
+    elif first.done_a[idx].any() and (
+        not can_start_early(params, keep_corr) or stop_after < len(PHASES) - 1
+    ):
+        raise InvalidInputError(
+            "a resumed first iteration needs n_iter >= 2, all phases and no correspondence"
+        )
     n = max(int(demo.n_a[idx].max()), 1)
     m = inputs.y_m3.shape[0]
     nb = len(idx)
