@@ -50,6 +50,7 @@ from knotlab.core.registration.kernel import (
     TARGET_RULES,
     exp_bits_constants,
     kernel_constants,
+    padded_length,
     rpm_kernel,
 )
 from knotlab.core.registration.params import (
@@ -60,6 +61,13 @@ from knotlab.core.registration.params import (
     clean_cloud,
 )
 from knotlab.core.registration.tps import ThinPlateSpline, TpsBasis, tps_basis
+
+
+def _pad_last_axis(arr: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """arr in dtype, C-contiguous, its last axis zero-padded to `padded_length`."""
+    out = np.zeros((*arr.shape[:-1], padded_length(arr.shape[-1])), dtype)
+    out[..., : arr.shape[-1]] = arr
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,8 +93,9 @@ class CloudSide:
         if key not in self._casts:
             self._casts[key] = {
                 "x_an3": self.x_an3.astype(dtype),
-                "g_ank": self.g_ank.astype(dtype),
-                "gt_akn": np.ascontiguousarray(np.swapaxes(self.g_ank, 1, 2), dtype=dtype),
+                # rows zero-padded to the kernel's vector length (`padded_length`)
+                "g_ank": _pad_last_axis(self.g_ank, dtype),
+                "gt_akn": _pad_last_axis(np.swapaxes(self.g_ank, 1, 2), dtype),
                 "mu_ak": self.mu_ak.astype(dtype),
                 "h_ak3": self.h_ak3.astype(dtype),
             }
@@ -297,8 +306,9 @@ def kernel_inputs(scene: CloudSide, params: RegistrationParams) -> KernelInputs:
     scene_cast = scene.cast(dt)
     return KernelInputs(
         y_m3=np.ascontiguousarray(scene_cast["x_an3"][0, :m]),
-        g_y=np.ascontiguousarray(scene_cast["g_ank"][0, :m, :ky]),
-        gt_y=np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, :m]),
+        # rows padded as the kernel's (zeros beyond ky and m)
+        g_y=np.ascontiguousarray(scene_cast["g_ank"][0, :m, : padded_length(ky)]),
+        gt_y=np.ascontiguousarray(scene_cast["gt_akn"][0, :ky, : padded_length(m)]),
         mu_y=np.ascontiguousarray(scene_cast["mu_ak"][0, :ky]),
         h_y=np.ascontiguousarray(scene_cast["h_ak3"][0, :ky]),
         mu_y64=scene.mu_ak[0],
@@ -314,8 +324,8 @@ def first_iteration_inputs(y_m3: np.ndarray, params: RegistrationParams) -> Kern
     ky = m + 4
     return KernelInputs(
         y_m3=np.ascontiguousarray(y_m3, dtype=dt),  # the values scene.cast gives: one rounding
-        g_y=np.zeros((m, ky), dt),
-        gt_y=np.zeros((ky, m), dt),
+        g_y=np.zeros((m, padded_length(ky)), dt),
+        gt_y=np.zeros((ky, padded_length(m)), dt),
         mu_y=np.zeros(ky, dt),
         h_y=np.zeros((ky, 3), dt),
         mu_y64=np.zeros(ky),
@@ -448,7 +458,8 @@ def _run_kernel(
     m = inputs.y_m3.shape[0]
     frac = params.outlier_frac
     corner_coef = frac if not weighted else params.outlier_prior
-    bits = np.empty(m, np.int32 if dt == np.float32 else np.int64)  # scratch, one per call
+    # scratch, one per call, as long as the kernel's padded affinity rows
+    bits = np.empty(padded_length(m), np.int32 if dt == np.float32 else np.int64)
     e_f, e_g, costs, corr, bad = outputs
     rpm_kernel(
         np.ascontiguousarray(idx, dtype=np.int64),
