@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 
 from knotlab.core.registration.params import MAX_EXPONENT, RegistrationParams
+from knotlab.core.registration.simd import BLOCK, transpose_block
 
 # Compilation: `cache=True` writes the machine code next to this file (core/__pycache__/*.nbi,
 # *.nbc); numba falls back to NUMBA_CACHE_DIR or ~/.cache when that is not writable. A cold
@@ -50,6 +51,7 @@ N_COSTS = 10  # the columns of params.COST_NAMES, in that order
 # The padded entries are finite, never feed a real output, and every real output element is the
 # same sum in the same order (bit-identical).
 VECTOR_PAD = 32
+assert VECTOR_PAD % BLOCK == 0, "the padded rows must hold whole transposed blocks"
 
 
 @njit(cache=True, nogil=True)
@@ -277,8 +279,10 @@ def rpm_kernel(
     # p, pt and the sums over them have VECTOR_PAD-padded rows, zeroed once: the padding only
     # ever holds zeros, earlier real values or the affinity of the zero-padded scene points
     # (finite), and lands only in padded sums
-    p = np.zeros((n_max, m_pad), cst.dtype)
-    pt = np.zeros((m, _padded(n_max)), cst.dtype)
+    # (rows too: p^T is copied in BLOCK x BLOCK blocks, which may cover up to BLOCK - 1 rows of
+    # p beyond n and of p^T beyond m; VECTOR_PAD is a multiple of BLOCK)
+    p = np.zeros((_padded(n_max), m_pad), cst.dtype)
+    pt = np.zeros((m_pad, _padded(n_max)), cst.dtype)
     srow = np.empty(m_pad, cst.dtype)
     rd = np.zeros(_padded(n_max), cst.dtype)
     r = np.empty(n_max, cst.dtype)
@@ -331,9 +335,9 @@ def rpm_kernel(
                     _exp_neg_row(srow, p, i, bits, bits_f, e_bias, e_shift, cst, m_pad)
                 # p^T too: with both layouts every product below is an axpy along contiguous
                 # memory, which vectorises under strict IEEE (a dot-product reduction does not)
-                for i in range(n):
-                    for j in range(m):
-                        pt[j, i] = p[i, j]
+                for i0 in range(0, n, BLOCK):
+                    for j0 in range(0, m, BLOCK):
+                        transpose_block(p, i0, j0, pt)
                 if stop_after == 0:
                     continue
                 # 2. Sinkhorn with an outlier row and column, rows first (GPU order); one pass

@@ -378,6 +378,29 @@ def test_fused_weighted_rows_equal_one_call_per_output_bit_for_bit(rows: int, dt
     np.testing.assert_array_equal(got4[:, 11:], start[:, 11:])  # past `length`: untouched
 
 
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_transpose_block_copies_exactly_one_block(dt) -> None:
+    """The shuffle intrinsic writes dst[j0 + c, i0 + r] = src[i0 + r, j0 + c], nothing else."""
+    from numba import njit
+
+    from knotlab.core.registration.simd import BLOCK, transpose_block
+
+    @njit
+    def blocks(src, dst, corners):
+        for q in range(corners.shape[0]):
+            transpose_block(src, corners[q, 0], corners[q, 1], dst)
+
+    rng = np.random.default_rng(5)
+    src = rng.standard_normal((29, 37)).astype(dt)
+    corners = np.array([[0, 0], [3, 11], [21, 29], [8, 16]])  # off the block grid too
+    dst = np.full((40, 33), 7.5, dt)
+    blocks(src, dst, corners)
+    want = np.full((40, 33), 7.5, dt)
+    for i0, j0 in corners:
+        want[j0 : j0 + BLOCK, i0 : i0 + BLOCK] = src[i0 : i0 + BLOCK, j0 : j0 + BLOCK].T
+    np.testing.assert_array_equal(dst.view(np.uint8), want.view(np.uint8))
+
+
 def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
     from knotlab.core.registration.tps import tps_basis
