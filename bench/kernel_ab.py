@@ -8,7 +8,9 @@ also prints each version's fingerprint (costs, spline coefficients and correspon
 scans at two sizes and an EXACT scan): a speed-up that changes a bit shows up there.
 
 Usage: .venv/bin/python bench/kernel_ab.py [--base REV] [--repeats 25]
-(compares the kernel at git REV, default HEAD, with the working tree's).
+(compares the kernel at git REV, default HEAD, with the working tree's). Both kernels are called
+by the working tree's `rpm.py`, so REV's kernel must take the same arguments: since 8541b48 the
+inputs are padded (`padded_length`), and older kernels are compared with `bench/scan_ab.py`.
 """
 
 from __future__ import annotations
