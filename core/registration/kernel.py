@@ -265,8 +265,11 @@ def rpm_kernel(
     nb = idx.shape[0]
     n_max = x_an3.shape[1]
     m_pad = _padded(m)
-    if bits.shape[0] < m_pad:  # numba does not check bounds: a short scratch would be overrun
-        raise ValueError("rpm_kernel: bits scratch shorter than the padded scene (padded_length)")
+    # numba does not check bounds: inputs not padded as `rpm` pads them would be overrun
+    if bits.shape[0] < m_pad or g_y.shape[1] < _padded(ky) or gt_y.shape[1] < m_pad:
+        raise ValueError("rpm_kernel: scene inputs or scratch not padded (padded_length)")
+    if g_ank.shape[2] < _padded(n_max + 4) or gt_akn.shape[2] < _padded(n_max):
+        raise ValueError("rpm_kernel: demo TPS bases not padded (padded_length)")
     ys = np.zeros((4, m_pad), cst.dtype)  # scene SoA, row 3 = 1
     for j in range(m):
         for d in range(3):

@@ -401,6 +401,20 @@ def test_transpose_block_copies_exactly_one_block(dt) -> None:
     np.testing.assert_array_equal(dst.view(np.uint8), want.view(np.uint8))
 
 
+def test_kernel_refuses_inputs_without_the_vector_padding() -> None:
+    """Numba does not check bounds: unpadded TPS bases must raise, not read past the arrays."""
+    from knotlab.core.registration.rpm import demo_side, rpm_batch, scene_side
+
+    demos = _library(3, [40, 33, 40])
+    demo, scene = demo_side(demos, SCAN), scene_side(demos[1], SCAN)
+    idx = np.arange(3)
+    rpm_batch(demo, idx, scene, SCAN, False)  # padded by `cast`: runs
+    cast = demo.cast(np.dtype(SCAN.dtype))
+    cast["gt_akn"] = np.ascontiguousarray(cast["gt_akn"][..., : demo.x_an3.shape[1]])
+    with pytest.raises(ValueError, match="not padded"):
+        rpm_batch(demo, idx, scene, SCAN, False)
+
+
 def _numpy_reference(demo, scene, params):
     """The RPM loop written plainly in float64 NumPy (one demo, batch or weighted rule)."""
     from knotlab.core.registration.tps import tps_basis
