@@ -54,15 +54,12 @@ VECTOR_PAD = 32
 assert VECTOR_PAD % BLOCK == 0, "the padded rows must hold whole transposed blocks"
 
 
-@njit(cache=True, nogil=True)
-def _padded(length):  # pragma: no cover - compiled
-    """length rounded up to a multiple of VECTOR_PAD (the kernel's; see `padded_length`)."""
-    return (length + VECTOR_PAD - 1) // VECTOR_PAD * VECTOR_PAD
-
-
 def padded_length(length: int) -> int:
-    """length rounded up to a multiple of VECTOR_PAD: the size of the kernel's `bits` scratch."""
+    """length rounded up to a multiple of VECTOR_PAD: how long the kernel's padded rows are."""
     return -(-length // VECTOR_PAD) * VECTOR_PAD
+
+
+_padded = njit(cache=True, nogil=True)(padded_length)  # the same rule inside the kernel
 
 
 @njit(cache=True, nogil=True, fastmath=False)
