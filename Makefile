@@ -1,4 +1,5 @@
-# knotlab: `make run` sets up and runs the main job; `make test` sets up and passes the tests.
+# knotlab: `make run` sets up and runs the main job; `make test` sets up and passes the tests
+# (all of them: CI); `make check` is the fast loop (lint + the tests not marked slow or browser).
 # Both create .venv idempotently (re-installing only when pyproject.toml changes).
 PYTHON ?= python3
 VENV := .venv
@@ -8,7 +9,7 @@ export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: run test lint format system-deps clean
+.PHONY: run test check lint format system-deps clean
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +41,10 @@ format: $(VENV)/.installed-test
 
 test: $(VENV)/.installed-test system-deps lint
 	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
+
+# No root needed: tests that need a missing PostgreSQL skip; Chromium's are `browser`, deselected.
+check: lint
+	$(BIN)/python -m pytest -m "not slow and not browser" -n 2 --dist loadgroup -q
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

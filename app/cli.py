@@ -76,20 +76,15 @@ class _Parser(argparse.ArgumentParser):
 
 
 def version() -> str:
-    """The installed knotlab version (the package's own when not installed)."""
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as installed_version
+    """The knotlab version: ``knotlab.__version__``, the one place it is written (pyproject's
+    version is read from it too)."""
+    from knotlab import __version__
 
-    try:
-        return installed_version("knotlab")
-    except PackageNotFoundError:
-        from knotlab.app import __version__
-
-        return __version__
+    return __version__
 
 
 class _VersionAction(argparse.Action):
-    """``--version``: looked up only when asked (importlib.metadata costs start-up time)."""
+    """``--version``: print the version and exit."""
 
     def __init__(self, option_strings: list[str], dest: str, help: str | None = None) -> None:
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)

@@ -7,7 +7,7 @@ import dataclasses
 import json
 import math
 
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import add_db_argument, add_flag, db_url
 from knotlab.core.errors import InvalidInputError, KnotlabError
 from knotlab.core.selection.agreement import MATCHES, PairAgreement
 
@@ -78,6 +78,6 @@ def register_agreement(sub: argparse._SubParsersAction) -> None:
         help="same state = same start, step and earlier choices (path, default) or start and "
         "step only (step)",
     )
-    p.add_argument("--json", action="store_true", help="print the pairs as JSON")
+    add_flag(p, "--json", detail="the pairs")
     add_db_argument(p)
     p.set_defaults(func=_run)

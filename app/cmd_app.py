@@ -13,10 +13,19 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url, integer, number
+from knotlab.app.options import (
+    add_db_argument,
+    add_flag,
+    add_task_argument,
+    db_url,
+    integer,
+    library_file,
+    number,
+    resolve_level,
+    task_of,
+)
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -31,34 +40,25 @@ def _port(text: str) -> int:
     return port
 
 
-def _top_k(text: str) -> int:
-    try:
-        k = int(text)
-    except ValueError:
-        k = 0
-    if not 1 <= k <= 9:
-        raise argparse.ArgumentTypeError(f"expected 1-9 candidates (hotkeys 1-9), got {text!r}")
-    return k
-
-
 def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
     """Open the store, load library, starts and models, and start serving; returns the app."""
     from knotlab.app.web.resources import load_resources
     from knotlab.app.web.server import LabelApp, load_models
     from knotlab.labeling_db.store import open_store
 
-    library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
+    task, level = task_of(args), resolve_level(args)
+    library_path = library_file(args)
     resources = load_resources(
         library_path,
-        defaults.task_set_path(args.level, "train"),
-        top_k=args.top_k,
+        defaults.task_set_path(level, "train", task),
+        top_k=args.top,
         overlap=getattr(args, "overlap", 0.0),
     )
     store = open_store(db_url(args), create=True, auto_upgrade=True)
-    added = resources.register_starts(store, args.level)
+    added = resources.register_starts(store, level)
     if added:
-        print(f"registered {added} {args.level} training starts in {store.url}")
-    ranking = load_models(resources, store, args.model, defaults.MODEL_PATH)
+        print(f"registered {added} {level} training starts in {store.url}")
+    ranking = load_models(resources, store, args.model, defaults.model_path(task))
     print(f"ranking candidates with {ranking}")
     print("warming up the registration kernel...", flush=True)
     resources.warm_up()
@@ -70,7 +70,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         port=args.port,
         lite_rendering=lite_rendering,
         sim_workers=args.sim_workers,
-        test_tasks_path=defaults.task_set_path(args.level, "test"),
+        test_tasks_path=defaults.task_set_path(level, "test", task),
     )
 
 
@@ -113,18 +113,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n")[0],
     )
     add_db_argument(p)
-    p.add_argument(
-        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
-    )
-    p.add_argument(
-        "--level", choices=defaults.LEVELS, default="main", help="whose training starts to label"
-    )
-    p.add_argument(
+    add_task_argument(p)
+    add_flag(p, "--library", detail="default: the task's shipped library")
+    add_flag(p, "--level", detail="whose training starts to label")
+    add_flag(
+        p,
         "--model",
-        default=None,
         metavar="VERSION|PATH",
-        help="rank with this stored model version or model file (default: the newest stored "
-        "model, else the shipped default, else nearest neighbour)",
+        detail="a stored model version or a model file (default: the newest stored model, else "
+        "the task's shipped default, else nearest neighbour)",
     )
     p.add_argument(
         "--host",
@@ -133,7 +130,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "anyone on that network)",
     )
     p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
-    p.add_argument("--top-k", type=_top_k, default=5, help="candidates shown per state (1-9)")
+    add_flag(
+        p,
+        "--top",
+        type=integer(1, maximum=9),
+        default=5,
+        detail="shown to the labeller, 1-9: its hotkeys (5)",
+    )
     p.add_argument(
         "--overlap",
         type=number(minimum=0.0, maximum=1.0),

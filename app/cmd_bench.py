@@ -10,14 +10,22 @@ from pathlib import Path
 
 from knotlab.app import defaults
 from knotlab.app.options import (
-    SEED,
-    WORKERS,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     add_task_set_argument,
     integer,
+    library_file,
     number,
+    task_set_file,
 )
 from knotlab.core.jsonsafe import json_safe
+from knotlab.core.tasks import DEFAULT_TASK
+
+# Lookahead policies la<D>x<W> beyond these simulate width**depth candidates per step: a typo
+# like la99x99 would run for ever, so it is refused when the command line is read.
+MAX_LOOKAHEAD_DEPTH = 5
+MAX_LOOKAHEAD_WIDTH = 50
 
 
 def task_limits(text: str) -> int | dict[str, int]:
@@ -36,14 +44,38 @@ def task_limits(text: str) -> int | dict[str, int]:
     return limits
 
 
+def policy_list(text: str) -> list[str]:
+    """argparse type of --policies: known policy names, lookahead within the bounds above."""
+    from knotlab.core.errors import KnotlabError
+    from knotlab.core.selection.policies import policy_config
+
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected comma-separated policy names, got {text!r}")
+    for name in names:
+        try:
+            config = policy_config(name)
+        except KnotlabError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        if config.kind == "lookahead" and not (
+            config.depth <= MAX_LOOKAHEAD_DEPTH and config.width <= MAX_LOOKAHEAD_WIDTH
+        ):
+            raise argparse.ArgumentTypeError(
+                f"{name}: lookahead depth must be 1-{MAX_LOOKAHEAD_DEPTH} and width "
+                f"1-{MAX_LOOKAHEAD_WIDTH}, got depth {config.depth}, width {config.width}"
+            )
+    return names
+
+
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
 
-def resolve_model_path(arg: str | None, out_dir: Path) -> Path | None:
-    """--model, else OUT/model.npz, else static/model_default.npz; None when neither exists."""
+def resolve_model_path(arg: str | None, out_dir: Path, task: str = DEFAULT_TASK) -> Path | None:
+    """--model, else OUT/model.npz, else the task's shipped default model; None when neither
+    exists."""
     if arg is not None:
         return Path(arg)
-    for candidate in (out_dir / "model.npz", defaults.MODEL_PATH):
+    for candidate in (out_dir / "model.npz", defaults.model_path(task)):
         if candidate.exists():
             return candidate
     return None
@@ -63,11 +95,11 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.core.selection.qmodel import QModel
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    policies = [p.strip() for p in args.policies.split(",") if p.strip()]
+    policies: list[str] = args.policies
     validate_policies(policies)
-    out_dir = check_output_dir(args.out)
-    library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
-    task_path = Path(args.task_set) if args.task_set else defaults.task_set_path(args.level, "test")
+    out_dir = check_output_dir(args.out_dir, flag="--out-dir")
+    library_path = library_file(args)
+    task_path = task_set_file(args, "test")
     try:
         library = DemoLibrary.load(library_path)
         task_set = TaskSet.load(task_path)
@@ -78,9 +110,9 @@ def _run(args: argparse.Namespace) -> int:
     model_path: Path | None = None
     learned = [p for p in policies if needs_model(p)]
     if learned:
-        model_path = resolve_model_path(args.model, out_dir)
+        model_path = resolve_model_path(args.model, out_dir, args.task)
         if model_path is None or not model_path.exists():
-            where = model_path or f"{out_dir / 'model.npz'} or {defaults.MODEL_PATH}"
+            where = model_path or f"{out_dir / 'model.npz'} or {defaults.model_path(args.task)}"
             raise InvalidInputError(
                 f"policies {', '.join(learned)} need a trained model and there is none at "
                 f"{where}: run `knotlab train --out PATH` first (on the TRAIN labels), "
@@ -89,6 +121,7 @@ def _run(args: argparse.Namespace) -> int:
         model = QModel.load(model_path)
     arguments = {
         "policies": policies,
+        "task": args.task,
         "tasks": args.tasks,
         "level": args.level,
         "out": str(out_dir),
@@ -174,29 +207,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="Table I: success rates of demo-selection policies on the test tasks",
         description=(
             "Run each policy on the first --tasks tasks of a level's TEST set and print Table I. "
-            "Resumable: rerunning with the same --out skips finished (policy, task) episodes."
+            "Resumable: rerunning with the same --out-dir skips finished (policy, task) episodes."
         ),
     )
     p.add_argument(
         "--policies",
+        type=policy_list,
         default=DEFAULT_POLICIES,
-        help=f"comma-separated: nn, greedy, la<D>x<W>, oracle (default {DEFAULT_POLICIES})",
+        help=f"comma-separated: nn, greedy, la<D>x<W> (D <= {MAX_LOOKAHEAD_DEPTH}, "
+        f"W <= {MAX_LOOKAHEAD_WIDTH}), oracle (default {DEFAULT_POLICIES})",
     )
-    p.add_argument("--tasks", type=integer(1), default=500, help="first N test tasks (default 500)")
-    p.add_argument("--level", choices=defaults.LEVELS, default="main")
-    p.add_argument("--out", required=True, help="results directory (resumed if it exists)")
-    p.add_argument(
+    add_flag(p, "--tasks", default=500, detail="the test set's (default 500)")
+    add_task_argument(p)
+    add_flag(p, "--level")
+    # `--out DIR`, the spelling before output folders were --out-dir, still works: argparse
+    # takes a unique prefix of a flag for the flag (tests/app/test_cli_flags.py holds it)
+    add_flag(p, "--out-dir", required=True, detail="the results (resumed if it exists)")
+    add_flag(
+        p,
         "--model",
-        default=None,
-        help=f"QModel for greedy / lookahead (default OUT/model.npz, else {defaults.MODEL_PATH})",
+        detail="greedy's and lookahead's (default OUT_DIR/model.npz, else the task's shipped one)",
     )
-    p.add_argument(
-        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
-    )
-    add_task_set_argument(p, "test task-set file (default static/tasks_<level>_test.npz)")
-    p.add_argument(
-        "--workers", type=WORKERS, default=None, help="worker processes/actors (default: cores)"
-    )
+    add_flag(p, "--library", detail="default: the task's shipped library")
+    add_task_set_argument(p, "the test starts (default: the task's shipped set of the level)")
+    add_flag(p, "--workers", detail="or Ray actors")
     p.add_argument("--engine", choices=("local", "ray"), default="local")
     p.add_argument(
         "--share-simulations",
@@ -207,7 +241,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ray-address", default=None, help="Ray cluster address (default: start a local Ray)"
     )
-    p.add_argument("--seed", type=SEED, default=0, help="observation-noise seed (default 0)")
+    add_flag(p, "--seed", default=0, detail="of the observation noise (0)")
     p.add_argument(
         "--noise", type=number(0.0), default=0.0, help="observation noise sigma, metres (default 0)"
     )
@@ -223,5 +257,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"
     )
     add_no_progress_argument(p)
-    p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    add_flag(p, "--json", detail="a summary after the text")
     p.set_defaults(func=_run)

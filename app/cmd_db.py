@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import add_db_argument, add_flag, db_url
 
 
 def _init(args: argparse.Namespace) -> int:
@@ -65,5 +65,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_upgrade)
     p = sub.add_parser("stats", help="row counts, labels by source and outcome, schema revision")
     add_db_argument(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_flag(p, "--json")
     p.set_defaults(func=_stats)

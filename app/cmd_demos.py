@@ -6,9 +6,9 @@ import argparse
 import json
 
 from knotlab.app.options import (
-    SEED,
-    WORKERS,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     check_not_shipped,
     integer,
     number,
@@ -28,9 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "The same seed gives a bit-identical file for any number of workers.",
     )
     gen.add_argument("--starts", type=integer(1), default=50, help="successful demos to keep (50)")
-    gen.add_argument("--seed", type=SEED, default=0, help="generation seed (0)")
-    gen.add_argument("--out", required=True, help="library file to write (.npz)")
-    gen.add_argument("--workers", type=WORKERS, default=None, help="processes (default: all cores)")
+    add_task_argument(gen)
+    add_flag(gen, "--seed", default=0, detail="of the generation (0)")
+    add_flag(gen, "--out", required=True, detail="the library (.npz)")
+    add_flag(gen, "--workers")
     gen.add_argument(
         "--bend", type=number(0.0), default=0.03, help="start-rope bend amplitude, m (0.03)"
     )
@@ -41,14 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="how the rope is perceived: centreline (state estimate, default), cloud (camera "
         "surface cloud), tracked (centreline estimated from the camera cloud)",
     )
-    gen.add_argument(
-        "--force", action="store_true", help="allow --out to replace the library in static/"
-    )
+    add_flag(gen, "--force", detail="here: the library --out names")
     add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a library file")
     info.add_argument("path", help="library file (.npz)")
-    info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_flag(info, "--json")
     info.set_defaults(func=run_info)
 
 

@@ -6,16 +6,17 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
-from knotlab.app import defaults
 from knotlab.app.options import (
-    WORKERS,
     add_db_argument,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     add_task_set_argument,
     db_url,
     integer,
+    library_file,
+    task_set_file,
 )
 
 
@@ -30,18 +31,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "to the labelling database; tasks already labelled there are skipped (resumable).",
     )
     p.add_argument("--oracle", action="store_true", required=True, help="use the oracle expert")
-    p.add_argument("--tasks", choices=("train",), default="train", help="which task split")
-    p.add_argument("--level", choices=defaults.LEVELS, default="main", help="task level")
-    add_task_set_argument(p, "train task-set file (default: the level's shipped set)")
-    p.add_argument("--library", type=Path, default=defaults.LIBRARY_PATH, help="demo library file")
+    add_task_argument(p)
+    p.add_argument(
+        "--split",
+        choices=("train", "test"),
+        default="train",
+        help="which shipped task set of the level (default train; a test set is refused: it "
+        "must stay unseen)",
+    )
+    add_flag(p, "--level")
+    add_task_set_argument(p, "the starts to label (default: the task's shipped --split set)")
+    add_flag(p, "--library", detail="default: the task's shipped library")
     add_db_argument(p)
-    p.add_argument("--limit", type=integer(0), help="label only the first N tasks")
+    add_flag(p, "--tasks", detail="label only these (default: all)")
     # at least 1: a budget of 0 would simulate nothing and record every task as unsolved
-    p.add_argument("--candidates", type=integer(1), default=10, help="demos tried per state")
+    add_flag(p, "--top", default=10, detail="the oracle tries them in registration-cost order (10)")
     p.add_argument("--sim-budget", type=integer(1), default=60, help="simulated actions per task")
-    p.add_argument("--workers", type=WORKERS, help="worker processes (default: all cores)")
+    add_flag(p, "--workers")
     add_no_progress_argument(p)
-    p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    add_flag(p, "--json", detail="a summary after the text")
     p.set_defaults(func=run)
 
 
@@ -54,17 +62,16 @@ def run(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import open_store
 
     args.db = db_url(args)
-    task_path = (
-        Path(args.task_set) if args.task_set else defaults.task_set_path(args.level, "train")
-    )
+    task_path = task_set_file(args, args.split)
+    library_path = library_file(args)
     tasks = TaskSet.load(task_path)
-    library = DemoLibrary.load(args.library)
+    library = DemoLibrary.load(library_path)
     if tasks.split != "train":
         raise InvalidInputError(
             f"{task_path} is a {tasks.split!r} task set: labels train the model, so only "
             "training starts may be labelled (the test set must stay unseen)"
         )
-    selected = list(tasks) if args.limit is None else list(tasks)[: args.limit]
+    selected = list(tasks) if args.tasks is None else list(tasks)[: args.tasks]
     t0 = time.perf_counter()
     solved = sims = dead = 0
     with open_store(args.db) as store:
@@ -76,9 +83,9 @@ def run(args: argparse.Namespace) -> int:
             f"labelling {len(todo)} with library {library.content_hash()}",
             file=sys.stderr,
         )
-        params = OracleParams(args.candidates, 5, args.sim_budget)
+        params = OracleParams(args.top, 5, args.sim_budget)
         results = oracle_label_tasks(
-            args.library, todo, params=params, workers=args.workers, progress=not args.no_progress
+            library_path, todo, params=params, workers=args.workers, progress=not args.no_progress
         )
         for result in results:
             store.add_execution(result.execution, if_exists="skip")

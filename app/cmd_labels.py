@@ -8,15 +8,17 @@ import sys
 from typing import Literal, cast
 
 from knotlab.app.options import (
-    WORKERS,
+    LABEL_FORMATS,
     add_db_argument,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     db_url,
-    integer,
+    library_file,
 )
 
 LabelFormat = Literal["jsonl", "csv"]
-FORMATS: tuple[LabelFormat, ...] = ("jsonl", "csv")
+FORMATS = cast(tuple[LabelFormat, ...], LABEL_FORMATS)
 SUFFIXES: dict[str, LabelFormat] = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
 
 
@@ -76,14 +78,13 @@ def _tries(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from knotlab.app import defaults
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.experiments.tries import try_candidates, try_jobs
     from knotlab.core.selection.tries import read_tries
     from knotlab.labeling_db.interchange import read_labels
 
     executions = [item.execution for item in read_labels(args.labels)]
-    library = DemoLibrary.load(args.library or defaults.LIBRARY_PATH)
+    library = DemoLibrary.load(library_file(args))
     out = Path(args.out)
     # Resumable: states already in OUT are kept and skipped (a torn last line is refused by
     # read_tries, naming it, rather than silently dropped).
@@ -109,19 +110,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     labels = subparsers.add_parser("labels", help="export or import labels (JSONL or CSV)")
     sub = labels.add_subparsers(dest="labels_command", required=True, metavar="ACTION")
     p = sub.add_parser("export", help="write every labelled execution to a file or stdout")
-    p.add_argument(
+    add_flag(
+        p,
         "--format",
-        choices=FORMATS,
         default=None,
-        help="default: from the --out extension (.jsonl or .csv); jsonl on stdout",
+        detail="default: from the --out extension (.jsonl or .csv); jsonl on stdout",
     )
-    p.add_argument("--out", default=None, help="output file, .jsonl or .csv (default: stdout)")
+    add_flag(p, "--out", default=None, detail=".jsonl or .csv (default: stdout)")
     p.add_argument("--source", choices=("oracle", "human"), default=None, help="only this source")
     add_db_argument(p)
     p.set_defaults(func=_export)
     p = sub.add_parser("import", help="validate a labels file, then store all of it or nothing")
     p.add_argument("path", help="a .jsonl or .csv file written by `knotlab labels export`")
-    p.add_argument("--format", choices=FORMATS, default=None, help="default: by suffix")
+    add_flag(p, "--format", default=None, detail="default: by suffix")
     p.add_argument(
         "--if-exists",
         choices=("error", "skip"),
@@ -135,11 +136,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="try the cheapest candidates of every labelled state once in simulation "
         "(for `knotlab train --tries`)",
     )
-    p.add_argument("--labels", required=True, help="labels file (.jsonl or .csv)")
-    p.add_argument("--library", default=None, help="demo library (default: the shipped one)")
-    p.add_argument("--top", type=integer(1), default=5, help="candidates tried per state (5)")
-    p.add_argument("--out", required=True, help="JSONL file to append to (resumed if it exists)")
-    p.add_argument("--workers", type=WORKERS, default=None, help="processes (default: cores)")
+    add_flag(p, "--labels", required=True)
+    add_task_argument(p)
+    add_flag(p, "--library", detail="default: the task's shipped library")
+    add_flag(p, "--top", default=5, detail="each tried once in simulation, cheapest first (5)")
+    add_flag(p, "--out", required=True, detail="JSONL to append to (resumed if it exists)")
+    add_flag(p, "--workers")
     add_no_progress_argument(p)
     p.set_defaults(func=_tries)
     from knotlab.app.cmd_agreement import register_agreement

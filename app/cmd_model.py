@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from knotlab.app.options import add_flag
 from knotlab.core.jsonsafe import json_safe
 
 # Training metrics worth a line in the text view (the rest are in --json).
@@ -75,5 +76,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="features, hashes, observation model, hyper-parameters and training metrics",
     )
     info.add_argument("path", help="model file (.npz) written by `knotlab train`")
-    info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_flag(info, "--json")
     info.set_defaults(func=run_info)

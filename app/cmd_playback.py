@@ -7,7 +7,16 @@ import sys
 from pathlib import Path
 
 from knotlab.app import defaults
-from knotlab.app.options import add_db_argument, db_url
+from knotlab.app.options import (
+    add_db_argument,
+    add_flag,
+    add_task_argument,
+    add_task_set_argument,
+    db_url,
+    integer,
+    number,
+    task_levels,
+)
 
 
 def _store_episode(args: argparse.Namespace, episode_id: int):
@@ -15,7 +24,7 @@ def _store_episode(args: argparse.Namespace, episode_id: int):
     from knotlab.labeling_db.store import open_store
 
     with open_store(db_url(args), create=False, auto_upgrade=False) as store:
-        return store_episode(store, episode_id, args.library)
+        return store_episode(store, episode_id, args.library or defaults.library_path(args.task))
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -40,15 +49,17 @@ def _run(args: argparse.Namespace) -> int:
                     f"EPISODE {spec!r}: expected RESULTS_DIR:POLICY:TASK_ID or db:ID"
                 )
             results_dir, policy, task_id = parts
-            levels = [
-                defaults.task_set_path(lv, sp) for lv in defaults.LEVELS for sp in ("test", "train")
+            shipped_sets = [
+                defaults.task_set_path(lv, sp, args.task)
+                for lv in task_levels(args.task)
+                for sp in ("test", "train")
             ]
             episode, library = bench_episode(
                 results_dir,
                 policy,
                 task_id,
-                library_paths=[args.library, defaults.LIBRARY_PATH],
-                task_set_paths=[args.task_set, *levels],
+                library_paths=[args.library, defaults.library_path(args.task)],
+                task_set_paths=[args.task_set, *shipped_sets],
             )
         out, replay = export_playback(
             episode, library, args.out, fps=args.fps, speed=args.speed, size=args.size
@@ -77,13 +88,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("episode", metavar="EPISODE")
-    p.add_argument("--out", required=True, help="animation file: .gif, or .mp4 (imageio-ffmpeg)")
-    p.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    add_flag(p, "--out", required=True, detail="the animation: .gif, or .mp4 (imageio-ffmpeg)")
     p.add_argument(
-        "--speed", type=float, default=4.0, help="simulated seconds per second (default 4)"
+        "--fps", type=integer(1, maximum=60), default=20, help="frames per second, 1-60 (20)"
     )
-    p.add_argument("--size", type=int, default=400, help="frame width and height, px (400)")
-    p.add_argument("--library", default=None, help="demo library, if not the run's recorded one")
-    p.add_argument("--task-set", default=None, help="task set, if not the run's recorded one")
+    p.add_argument(
+        "--speed",
+        type=number(0.0, above=True, maximum=1000.0),
+        default=4.0,
+        help="simulated seconds per second (default 4)",
+    )
+    p.add_argument(
+        "--size",
+        type=integer(64, maximum=2048),
+        default=400,
+        help="frame width and height, px, 64-2048 (400)",
+    )
+    add_task_argument(p)
+    add_flag(
+        p,
+        "--library",
+        detail="if not the run's recorded one (looked for: the task's shipped library)",
+    )
+    add_task_set_argument(
+        p, "if not the run's recorded one (looked for: the task's shipped sets of every level)"
+    )
     add_db_argument(p)
     p.set_defaults(func=_run)

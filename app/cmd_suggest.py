@@ -6,11 +6,21 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import sys
-from pathlib import Path
 
-from knotlab.app import defaults
-from knotlab.app.options import add_db_argument
+from knotlab.app.options import (
+    DB_ENV,
+    add_db_argument,
+    add_flag,
+    add_no_progress_argument,
+    add_task_argument,
+    add_task_set_argument,
+    integer,
+    library_file,
+    model_file,
+    task_set_file,
+)
 from knotlab.core.selection.acquisition import RANK_BY, RankedState
 
 
@@ -51,20 +61,21 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.core.selection.qmodel import QModel
     from knotlab.labeling_db.errors import LabelingDbError
 
-    if args.db is not None and args.tasks_file is not None:
-        raise InvalidInputError("give --db or --tasks-file, not both")
-    if args.limit < 1:
-        raise InvalidInputError(f"--limit must be >= 1, got {args.limit}")
+    if args.db is not None and args.task_set is not None:
+        raise InvalidInputError("give --db or --task-set, not both")
+    # As in every database command $KNOTLAB_DB_URL stands for a missing --db; a --task-set
+    # still chooses the file over it, and with neither the task's shipped train set is ranked.
+    url = args.db or (None if args.task_set else os.environ.get(DB_ENV) or None)
     progress = not args.no_progress
     try:
-        library = DemoLibrary.load(Path(args.library) if args.library else defaults.LIBRARY_PATH)
-        model = QModel.load(Path(args.model) if args.model else defaults.MODEL_PATH)
+        library = DemoLibrary.load(library_file(args))
+        model = QModel.load(model_file(args))
         featurizer = LibraryFeaturizer.for_model(library, model)
-        if args.db is not None:
-            clouds = _clouds_from_store(args.db)
-            where = f"{args.db} (start states without a completed episode)"
+        if url is not None:
+            clouds = _clouds_from_store(url)
+            where = f"{url} (start states without a completed episode)"
         else:
-            path = Path(args.tasks_file or defaults.task_set_path(args.level, "train"))
+            path = task_set_file(args, "train")
             tasks = TaskSet.load(path)
             if tasks.split != "train":
                 raise InvalidInputError(
@@ -107,20 +118,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Score every unlabelled training start by the Q margin between its two best demos "
             "and by whether NN and greedy disagree there, and list the most informative first. "
-            "Starts come from the labelling database (--db: those without a completed episode) "
-            "or from a training task set (default static/tasks_<level>_train.npz)."
+            f"Starts come from the labelling database (--db, or ${DB_ENV} when set: those "
+            "without a completed episode) or from a training task set (--task-set; default: the "
+            "task's shipped train set of the level)."
         ),
     )
     add_db_argument(p)
-    p.add_argument("--tasks-file", default=None, help="training task set (instead of --db)")
-    p.add_argument("--level", choices=defaults.LEVELS, default="main")
-    p.add_argument("--model", default=None, help=f"QModel (default {defaults.MODEL_PATH})")
-    p.add_argument(
-        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
-    )
-    p.add_argument("--limit", type=int, default=20, help="how many to list (default 20)")
+    add_task_set_argument(p, "training starts to rank (instead of the database)")
+    add_task_argument(p)
+    add_flag(p, "--level")
+    add_flag(p, "--model", detail="default: the task's shipped default model")
+    add_flag(p, "--library", detail="default: the task's shipped library")
+    p.add_argument("--limit", type=integer(1), default=20, help="how many to list (default 20)")
     p.add_argument("--by", choices=RANK_BY, default="combined", help="ranking (default combined)")
-    p.add_argument("--seed", type=int, default=0, help="tie-break seed (default 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--json", action="store_true", help="print the ranking as JSON")
+    add_flag(p, "--seed", default=0, detail="breaks ties (0)")
+    add_no_progress_argument(p)
+    add_flag(p, "--json", detail="the ranking instead of the text")
     p.set_defaults(func=_run)

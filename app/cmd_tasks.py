@@ -4,31 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
 
 import numpy as np
 
-from knotlab.app import defaults
 from knotlab.app.options import (
-    SEED,
-    WORKERS,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     check_not_shipped,
     integer,
+    library_file,
     number,
+    resolve_level,
 )
-
-LEVEL_NAME = re.compile(r"[a-z0-9_-]+")  # it becomes part of a file name: no folders, no dots
-
-
-def level_name(text: str) -> str:
-    """An argparse type: a plain level name like main or hard (it goes into file names)."""
-    if not LEVEL_NAME.fullmatch(text):
-        raise argparse.ArgumentTypeError(
-            f"expected a plain name of a-z, 0-9, _ and - (like main or hard), got {text!r}"
-        )
-    return text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -50,24 +39,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=0.05,
         help="tent peak displacement, m (0.05)",
     )
-    gen.add_argument("--seed", type=SEED, required=True, help="generation seed")
+    add_flag(gen, "--seed", required=True, detail="of the generation")
     gen.add_argument(
         "--centres", type=integer(1), default=7, help="tent centres along the rope (7)"
     )
-    gen.add_argument(
-        "--level", type=level_name, default="main", help="level name used in file names (main)"
-    )
-    gen.add_argument("--library", default=str(defaults.LIBRARY_PATH), help="demo library file")
-    gen.add_argument("--out-dir", default=".", help="directory for the task files (.)")
-    gen.add_argument("--workers", type=WORKERS, default=None, help="processes (default: all cores)")
-    gen.add_argument(
-        "--force", action="store_true", help="allow replacing the task sets shipped in static/"
-    )
+    add_task_argument(gen)
+    add_flag(gen, "--level", detail="here it may name a new level: it goes into the file names")
+    add_flag(gen, "--library", detail="whose start ropes to perturb (default: the task's)")
+    add_flag(gen, "--out-dir", default=".", detail="the task sets (.)")
+    add_flag(gen, "--workers")
+    add_flag(gen, "--force", detail="here: the shipped task sets")
     add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a task-set file")
     info.add_argument("path", help="task-set file (.npz)")
-    info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_flag(info, "--json")
     info.set_defaults(func=run_info)
 
 
@@ -81,12 +67,13 @@ def run_generate(args: argparse.Namespace) -> int:
     splits = [(split, n) for split, n in (("train", args.train), ("test", args.test)) if n > 0]
     if not splits:
         raise InvalidInputError("--train and --test are both 0: there is nothing to generate")
+    level = resolve_level(args, shipped=False)
     out_dir = check_output_dir(args.out_dir, flag="--out-dir")
     for split, _ in splits:  # every output is checked before the first simulation
-        path = out_dir / f"tasks_{args.level}_{split}.npz"
+        path = out_dir / f"tasks_{level}_{split}.npz"
         check_output_file(path, flag="--out-dir")
         check_not_shipped(path, flag="--out-dir", force=args.force)
-    lib = DemoLibrary.load(args.library)
+    lib = DemoLibrary.load(library_file(args))
     starts = lib.start_states()
     extra = {"library_hash": lib.content_hash()}
     for split, n in splits:
@@ -98,12 +85,12 @@ def run_generate(args: argparse.Namespace) -> int:
             rho=args.rho,
             seed=args.seed,
             n_centres=args.centres,
-            level=args.level,
+            level=level,
             workers=args.workers,
             progress=not args.no_progress,
             extra_metadata=extra,
         )
-        path = ts.save(out_dir / f"tasks_{args.level}_{split}.npz")
+        path = ts.save(out_dir / f"tasks_{level}_{split}.npz")
         print(
             f"wrote {path}: {len(ts)} {split} tasks, rho {args.rho} m, {args.centres} centres, "
             f"hash {ts.content_hash()}; {time.perf_counter() - t0:.1f} s"

@@ -6,6 +6,8 @@ import argparse
 import json
 import time
 
+from knotlab.app.options import add_flag
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `tie` sub-command."""
@@ -15,16 +17,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Run the fixed 3-step gripper sequence on a straight rope, check the knot "
         "with the knot invariant, and write a top-down picture. Exit code 0 if knotted.",
     )
-    parser.add_argument("--out", default="knot.png", help="PNG to write (default: knot.png)")
-    parser.add_argument("--json", action="store_true", help="print one JSON summary line")
+    add_flag(parser, "--out", default="knot.png", detail="the PNG (default: knot.png)")
+    add_flag(parser, "--json", detail="a summary instead of the text")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Tie the knot; 0 if the final rope is an overhand knot, 1 otherwise."""
     from knotlab.core.atomic import atomic_path, check_output_file
+    from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
     from knotlab.core.world.knot import analyse_knot
-    from knotlab.core.world.knot_sequence import overhand_sequence
+    from knotlab.core.world.render import render_topdown
     from knotlab.core.world.rope import straight_rope
     from knotlab.core.world.sim import RopeParams, RopeWorld
 
@@ -59,7 +62,9 @@ def run(args: argparse.Namespace) -> int:
         final = analyse_knot(world.rope_nodes())
         verdict = "overhand knot" if final.is_overhand else "no knot"
         with atomic_path(out) as tmp:  # a failed render leaves no half-written picture
-            world.render_topdown(tmp, title=f"knotlab tie: {verdict}")
+            render_topdown(
+                world.rope_nodes(), tmp, radius=params.radius, title=f"knotlab tie: {verdict}"
+            )
     summary = {
         "knot": final.is_overhand,
         "determinants": list(final.determinants),

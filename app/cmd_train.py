@@ -20,12 +20,13 @@ from pathlib import Path
 
 from knotlab.app import defaults
 from knotlab.app.options import (
-    SEED,
-    WORKERS,
     add_db_argument,
+    add_flag,
     add_no_progress_argument,
+    add_task_argument,
     check_not_shipped,
     default_db_url,
+    library_file,
     number,
 )
 from knotlab.core.jsonsafe import json_safe
@@ -79,7 +80,7 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.core.selection.tries import read_tries
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    library_path = Path(args.library) if args.library else defaults.LIBRARY_PATH
+    library_path = library_file(args)
     out_path = Path(args.out) if args.out else None
     if out_path is not None:  # before featurising and solving, not after
         check_output_file(out_path)
@@ -197,11 +198,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n")[0],
     )
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--labels", default=None, help="labels file (.jsonl or .csv) to train on")
+    add_flag(src, "--labels", default=None, detail="to train on (instead of --db)")
     add_db_argument(src)
-    p.add_argument(
-        "--library", default=None, help=f"demo library (default {defaults.LIBRARY_PATH})"
-    )
+    add_task_argument(p)
+    add_flag(p, "--library", detail="default: the task's shipped library")
     p.add_argument(
         "--C",
         dest="C",
@@ -241,17 +241,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="tried candidates of the labelled states (`knotlab labels tries`): no margin row "
         "against a demo that advanced as well as the label's, a full one against one that did not",
     )
-    p.add_argument(
+    add_flag(
+        p,
         "--out",
         default=None,
-        help=f"model file to write (default: a new {defaults.MODELS_DIR.name}/model-HASH.npz in "
-        "the working directory; the shipped default model is never overwritten implicitly)",
+        detail=f"the model (default: a new {defaults.MODELS_DIR.name}/model-HASH.npz in the "
+        "working directory; the shipped default model is never overwritten implicitly)",
     )
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="allow --out to replace an existing model under static/ or results/",
-    )
+    add_flag(p, "--force", detail="here: the model --out names")
     p.add_argument(
         "--select",
         choices=("top1", "value_auc"),
@@ -266,13 +263,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=0.2,
         help="share of executions held out for validation, 0 <= f < 1 (0.2)",
     )
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the train/validation split")
+    add_flag(p, "--seed", default=0, detail="of the train/validation split (0)")
     p.add_argument(
         "--refit-all", action="store_true", help="after validating, refit on every execution"
     )
-    p.add_argument(
-        "--workers", type=WORKERS, default=None, help="featurising processes (default: cores)"
-    )
+    add_flag(p, "--workers", detail="they featurise the labelled states")
     add_no_progress_argument(p)
-    p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    add_flag(p, "--json", detail="a summary after the text")
     p.set_defaults(func=_run)

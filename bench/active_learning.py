@@ -46,6 +46,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from knotlab.app import defaults  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.machine import machine_info  # noqa: E402
 from knotlab.core.selection.acquisition import rank_for_labelling, score_state  # noqa: E402
@@ -83,7 +84,7 @@ def _greedy_success(model: QModel, library: DemoLibrary, args, order: str, n: in
     from knotlab.core.experiments.bench import run_bench
 
     out = Path(args.out).parent / "greedy" / f"{order}_{n:04d}"
-    tasks = TaskSet.load(ROOT / "static" / "tasks_main_test.npz")
+    tasks = TaskSet.load(defaults.task_set_path("main", "test"))
     result = run_bench(
         out,
         library=library,
@@ -362,7 +363,7 @@ def main() -> int:
     """Run both learning curves, print the table, save the plot (and a JSON beside it)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--labels", default=str(ROOT / "results" / "labels_oracle_main.jsonl"))
-    ap.add_argument("--library", default=str(ROOT / "static" / "demos_default.npz"))
+    ap.add_argument("--library", default=str(defaults.library_path()))
     ap.add_argument("--step", type=int, default=20, help="executions added per round (20)")
     ap.add_argument("--max-labels", type=int, default=200, help="last curve point (200)")
     ap.add_argument("--seeds", default="0,1", help="curve seeds (seed set, random order)")

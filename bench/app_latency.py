@@ -4,7 +4,7 @@ Prints: page ready (goto until the first state's candidates are in the scene); n
 candidates drawn (R: claim a start, observe, scan the library, rank, draw; median and p95);
 Enter to the first animation frame; and the same two with 3 more tabs labelling at once
 (driven server-side by threads: try, judge, next, with --think s between their actions).
-Targets (issue "The labelling app"): candidates drawn within 0.3 s median, 0.5 s p95; page
+Targets: candidates drawn within 0.3 s median, 0.5 s p95; page
 ready within 3 s. Usage: python bench/app_latency.py [--samples 20] [--tries 5]
 """
 

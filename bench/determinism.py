@@ -37,31 +37,19 @@ def _digest(data: bytes) -> str:
 
 def fingerprint(task_index: int, level: str, steps: int) -> tuple[dict, np.ndarray]:
     """The fingerprint as a JSON-able dict, and the scan's cost array (demos x cost terms)."""
-    from knotlab.core.experiments.episode import run_episode
-    from knotlab.core.registration.planner import DemoTransferer
-    from knotlab.core.selection.features import LibraryFeaturizer
-    from knotlab.core.selection.policies import make_policy
+    from knotlab.core.agent import Agent
     from knotlab.core.world.sim import RopeWorld
 
     library = DemoLibrary.load(defaults.LIBRARY_PATH)
     task = list(TaskSet.load(defaults.task_set_path(level, "test")))[task_index]
-    featurizer = LibraryFeaturizer(library)
+    agent = Agent(library)  # nearest neighbour
     with RopeWorld() as world:
         world.reset(task.start_nodes_k3)
-        cloud_n3 = featurizer.observe(world)
-        scan = featurizer.scan(cloud_n3)
+        cloud_n3 = agent.observe(world)
+        scan = agent.scan(cloud_n3)
         nn_a = np.where(scan.ok_a, scan.nn_cost_a, np.inf)
         best, second = np.sort(nn_a)[:2]
-        record = run_episode(
-            world,
-            task.start_nodes_k3,
-            make_policy("nn"),
-            featurizer,
-            DemoTransferer(library),
-            task_id=task.task_id,
-            seed=episode_seed(0, task.seed),
-            max_steps=steps,
-        )
+        record = agent.run_episode(world, task, seed=episode_seed(0, task.seed), max_steps=steps)
     chosen = list(record.summary()["chosen"])
     out = {
         "cpu": cpu_model(),

@@ -22,8 +22,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from knotlab.core.demos.expert import ExpertStyle, run_expert, sample_start_rope
 from knotlab.core.parallel import default_workers, imap_processes
+from knotlab.core.tasks.overhand.expert import ExpertStyle, run_expert, sample_start_rope
 
 _WORLD: dict[str, object] = {}
 

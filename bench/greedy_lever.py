@@ -38,6 +38,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from knotlab.app import defaults  # noqa: E402
+from knotlab.core.agent import Agent  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
 from knotlab.core.experiments.bench import wilson_interval  # noqa: E402
@@ -84,33 +86,28 @@ class Spec:
 
 class _Worker:
     def __init__(self, spec: Spec) -> None:
+        from knotlab.core.agent import Agent
         from knotlab.core.parallel import single_thread_blas
-        from knotlab.core.registration.planner import DemoTransferer
-        from knotlab.core.selection.features import LibraryFeaturizer
         from knotlab.core.world.sim import RopeWorld
 
         single_thread_blas()
         self.spec = spec
         self.world = RopeWorld()
-        self.transferer = DemoTransferer(spec.library)
-        self.featurizers = {
-            rank: LibraryFeaturizer(spec.library, rank_features=rank) for rank in (False, True)
-        }
+        self.nn = Agent(spec.library)  # the variants' greedy agents share its caches
+        self.agents: dict[tuple[str, int], Agent] = {}
+
+    def agent(self, job: Job) -> Agent:
+        """The job's agent: nearest neighbour, or greedy on the variant's model of the fold."""
+        if job.variant == "nn":
+            return self.nn
+        key = (job.variant, job.fold)
+        if key not in self.agents:
+            self.agents[key] = self.nn.with_model(self.spec.models[key])
+        return self.agents[key]
 
     def run(self, job: Job) -> dict:
-        from knotlab.core.experiments.episode import run_episode
-        from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
-
-        if job.variant == "nn":
-            policy, featurizer = NearestNeighbourPolicy(), self.featurizers[False]
-        else:
-            policy = GreedyPolicy(self.spec.models[(job.variant, job.fold)])
-            featurizer = self.featurizers[VARIANTS[job.variant][0]]
         task = self.spec.tasks[job.task_index]
-        record = run_episode(
-            self.world, task.start_nodes_k3, policy, featurizer, self.transferer,
-            task_id=task.task_id, seed=task.seed,
-        )  # fmt: skip
+        record = self.agent(job).run_episode(self.world, task)
         out = record.summary()
         if out.get("error"):
             raise RuntimeError(f"{job}: episode errored: {out['error']}")
@@ -189,8 +186,8 @@ def main() -> int:
     """Run the study and print its table."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--labels", default=str(ROOT / "results/labels_oracle_main.jsonl"))
-    ap.add_argument("--library", default=str(ROOT / "static/demos_default.npz"))
-    ap.add_argument("--tasks", default=str(ROOT / "static/tasks_main_train.npz"))
+    ap.add_argument("--library", default=str(defaults.library_path()))
+    ap.add_argument("--tasks", default=str(defaults.task_set_path("main", "train")))
     ap.add_argument("--variants", default="base,rank,base+floor,rank+floor,base+tries")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)

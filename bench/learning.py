@@ -9,7 +9,7 @@ States are grouped into 3-step executions (Bellman rows along them, a goal row a
 ``--dead-ends`` dead-end states.
 
 Usage: .venv/bin/python bench/learning.py [--states 300] [--demos 148] [--dead-ends 30]
-       [--repeats 3] [--C 1] [--D 1] [--library static/demos_default.npz] [--json]
+       [--repeats 3] [--C 1] [--D 1] [--library PATH] [--json]
 """
 
 from __future__ import annotations

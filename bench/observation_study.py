@@ -23,6 +23,7 @@ import json  # noqa: E402
 from collections import Counter  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from knotlab.app import defaults  # noqa: E402
 from knotlab.core.demos.generation import GenSettings, generate_library  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
@@ -67,7 +68,7 @@ def main() -> int:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = TaskSet.load(ROOT / "static" / "tasks_main_train.npz")
+    tasks = TaskSet.load(defaults.task_set_path("main", "train"))
     policies = ["nn", "oracle"] if args.oracle_starts > 0 else ["nn"]
     rows = []
     for name in args.models.split(","):

@@ -32,7 +32,8 @@ from knotlab.core.registration import (  # noqa: E402
     register,
 )
 from knotlab.core.registration.kernel import PHASES  # noqa: E402
-from knotlab.core.registration.rpm import rpm_batch, scene_side  # noqa: E402
+from knotlab.core.registration.rpm import rpm_batch  # noqa: E402
+from knotlab.core.registration.sides import scene_side  # noqa: E402
 from knotlab.core.registration.synthetic import corrupt, library, rope_cloud, smooth_warp  # noqa: E402
 
 N_DEMOS = 148

@@ -41,7 +41,8 @@ from knotlab.core.machine import machine_info  # noqa: E402
 from knotlab.core.registration import library_scan, planner  # noqa: E402
 from knotlab.core.selection import features as features_mod  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
-from knotlab.core.world import sim, stages  # noqa: E402
+from knotlab.core.tasks.overhand import stages  # noqa: E402
+from knotlab.core.world import sim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPONENTS = ("simulation", "transfer", "scan", "features", "knot test")
@@ -116,11 +117,9 @@ def training_episode(worker: BenchWorker, name: str, task):
     """One episode of policy ``name`` from a training start, as the bench seeds it; an
     episode that errored ends the benchmark (its times would not be a result)."""
     record = run_episode(
+        worker.agent_for(name),
         worker.world,
         task.start_nodes_k3,
-        worker.policy(name),
-        worker.featurizer,
-        worker.transferer,
         task_id=task.task_id,
         seed=episode_seed(0, task.seed),
     )
@@ -215,29 +214,22 @@ def format_report(rows: list[dict]) -> str:
 def run_interactive(worker: BenchWorker, args: argparse.Namespace, tasks, clock) -> list[dict]:
     """The app's mode: a search level's expansions side by side on the app's SimPool."""
     from knotlab.app.web.sim_pool import PoolRunner, SimPool
-    from knotlab.core.selection.policies import make_policy
 
     pool = SimPool(str(Path(args.library).resolve()), args.pool_workers)
     rows = []
     try:
         variants = {"on": (True,), "off": (False,), "both": (False, True)}[args.prefetch]
         for name, prefetch in [(n, p) for n in args.interactive.split(",") for p in variants]:
-            policy = make_policy(name, worker.spec.model)
             runner = PoolRunner(pool)
             runner.speculates = prefetch  # off: each level waits for the previous one whole
-            policy.runner = runner  # type: ignore[attr-defined]
+            agent = worker.agent.with_policy(name, runner=runner)
+            policy = agent.policy
             policy.name = f"{name} (app, {args.pool_workers} workers"
             policy.name += ")" if prefetch else ", no prefetch)"
-            worker._policies[policy.name] = policy
+            worker._agents[policy.name] = agent
             # warm the workers' featurizers for this model before timing
             run_episode(
-                worker.world,
-                tasks[0].start_nodes_k3,
-                policy,
-                worker.featurizer,
-                worker.transferer,
-                task_id="warm-up",
-                max_steps=1,
+                agent, worker.world, tasks[0].start_nodes_k3, task_id="warm-up", max_steps=1
             )
             policy.memo = type(policy.memo)()  # type: ignore[attr-defined]
             rows.append(run_policy(worker, policy.name, tasks, clock))
@@ -249,10 +241,7 @@ def run_interactive(worker: BenchWorker, args: argparse.Namespace, tasks, clock)
 
 def _warm_up(worker: BenchWorker, task) -> None:
     """Compile (or load) the numba kernels of both presets before anything is timed."""
-    worker.world.reset(task.start_nodes_k3)
-    cloud = worker.featurizer.observe(worker.world)
-    worker.featurizer.features(cloud)
-    worker.transferer.plan(cloud, 0)
+    worker.agent.warm_up(worker.world, task.start_nodes_k3)
 
 
 def main() -> None:
@@ -288,7 +277,7 @@ def main() -> None:
     install(clock)
     rows = []
     for name in args.policies.split(","):
-        worker.policy(name)
+        worker.agent_for(name)
         rows.append(run_policy(worker, name, tasks, clock))
         print(f"{name}: {rows[-1]['median_decision_s']:.2f} s median decision", flush=True)
     if args.interactive:

@@ -43,11 +43,11 @@ from tqdm import tqdm  # noqa: E402
 from knotlab.app import defaults  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
+from knotlab.core.execution import apply as apply_mod  # noqa: E402
+from knotlab.core.execution import expansion as expansion_mod  # noqa: E402
+from knotlab.core.execution import memo as memo_mod  # noqa: E402
 from knotlab.core.experiments.bench import BenchWorker, WorkerSpec  # noqa: E402
 from knotlab.core.machine import machine_info  # noqa: E402
-from knotlab.core.registration import planner  # noqa: E402
-from knotlab.core.selection import expansion as expansion_mod  # noqa: E402
-from knotlab.core.selection import policies as policies_mod  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,7 +77,7 @@ class SharingLedger:
         @functools.wraps(original)
         def booked(world, transferer, cloud_n3, action, *args, **kwargs):
             t_key = time.perf_counter()
-            state = policies_mod.snapshot_digest(world.snapshot())
+            state = memo_mod.snapshot_digest(world.snapshot())
             cloud = hashlib.sha1(np.ascontiguousarray(cloud_n3, dtype=np.float64)).hexdigest()
             key = (self.task, state, cloud, int(action))
             t0 = time.perf_counter()
@@ -112,8 +112,8 @@ def main() -> None:
     tasks = list(TaskSet.load(defaults.task_set_path(args.level, "train")))[: args.starts]
     worker = BenchWorker(WorkerSpec(library, QModel.load(args.model)))
     ledger = SharingLedger()
-    booked = ledger.wrap(planner.apply_demo)
-    for module in (expansion_mod, policies_mod):  # every caller of apply_demo looks it up there
+    booked = ledger.wrap(apply_mod.apply_demo)
+    for module in (expansion_mod, memo_mod):  # every caller of apply_demo looks it up there
         module.apply_demo = booked  # type: ignore[attr-defined]
 
     wall: dict[str, float] = defaultdict(float)

@@ -3,7 +3,7 @@
 Usage: python bench/sim_speed.py [--repeats 5] [--json]
 Prints a table of medians over repeats (CPU time of this process, and wall time) with the
 machine's details; with --json also the same figures as one JSON object on the last line.
-Targets (issue 2): >= 2,000 steps/s with the rope dragged, <= 2 s per 3-step sequence.
+Targets: >= 2,000 steps/s with the rope dragged, <= 2 s per 3-step sequence.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from importlib import metadata  # noqa: E402
 import numpy as np  # noqa: E402
 
 from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence  # noqa: E402
 from knotlab.core.world.knot import is_overhand_knot  # noqa: E402
-from knotlab.core.world.knot_sequence import overhand_sequence  # noqa: E402
 from knotlab.core.world.rope import straight_rope  # noqa: E402
 from knotlab.core.world.sim import RopeWorld  # noqa: E402
 from knotlab.core.world.trajectory import GripperTrajectory, down_rotation  # noqa: E402

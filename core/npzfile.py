@@ -1,7 +1,7 @@
 """Byte-deterministic .npz files with a JSON header: same content -> same bytes.
 
 Knotlab promises bit-identical regeneration of its shipped files, so the zip layout is ours: fixed
-member timestamps, sorted members, deflate. Checked (issue 10): `np.savez_compressed` is also
+member timestamps, sorted members, deflate. Checked: `np.savez_compressed` is also
 byte-deterministic on NumPy 2.4 with Python 3.11 (zipfile's ZipInfo defaults to 1980-01-01), but
 it adds zip64 extra fields, so switching would rewrite the bytes of every shipped file, and the
 older NumPy releases pyproject allows (>= 1.26) were not checked; the writer stays (40 lines).

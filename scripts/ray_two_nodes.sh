@@ -12,5 +12,5 @@ bin=.venv/bin
 source scripts/ray_cluster.sh
 trap ray_down EXIT
 ray_up
-$bin/knotlab bench --engine ray --ray-address "$RAY_ADDRESS_LOCAL" --workers 2 --out "$out" "$@"
+$bin/knotlab bench --engine ray --ray-address "$RAY_ADDRESS_LOCAL" --workers 2 --out-dir "$out" "$@"
 $bin/python bench/node_throughput.py "$out/outcomes.jsonl"

@@ -27,17 +27,18 @@ labels="results/labels_oracle_${level}.jsonl"
 if [ ! -e "results/labels_${level}.db" ] && [ -e "$labels" ]; then
   $bin/knotlab labels import "$labels" --db "$db"
 fi
-$bin/knotlab label --oracle --tasks train --level "$level" --limit "$n_train" --db "$db"
+$bin/knotlab label --oracle --split train --level "$level" --tasks "$n_train" --db "$db"
 $bin/knotlab labels export --format jsonl --db "$db" --out "$labels"
 
 # 1b. Try the 5 cheapest candidates of every labelled state once in simulation (resumable): the
-#     training then knows which alternatives to the oracle's demo advance as well (issue 12's
-#     lever; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with, NN 48.0 %).
+#     training then knows which alternatives to the oracle's demo advance as well (the lever
+#     of docs/results.md; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with,
+#     NN 48.0 %).
 $bin/knotlab labels tries --labels "$labels" --top 5 \
   --out "results/tries_${level}.jsonl"
 
 # 2. Train on the training labels only (validation split by execution, seed 0). Chosen on the
-#    validation split, never the test set (issue 12): 50 + 20 landmark states, C = 1000, D = 10.
+#    validation split, never the test set: 50 + 20 landmark states, C = 1000, D = 10.
 #    It ranked the expert's demo first in 0.509 of 175 validation states (the best of the swept
 #    C in {1, 10, 100, 1000} x D in {1, 10, 100}) and valued expert states above dead ends in
 #    0.949 of pairs (0.683 without landmarks at the same top-1). To redo the sweep:
@@ -61,7 +62,7 @@ share=()
 if [ -z "${SHARE:-}" ]; then
   for lv in main hard; do
     $bin/knotlab bench --policies nn,greedy,la2x5 --tasks 500 --level "$lv" --model "$model" \
-      --out "results/table1_${lv}"
+      --out-dir "results/table1_${lv}"
   done
 else
   share=(--share-simulations)
@@ -69,5 +70,5 @@ fi
 for lv in main hard; do
   $bin/knotlab bench --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 \
     --first "oracle=${first},la1x10=${first}" "${share[@]}" \
-    --level "$lv" --model "$model" --out "results/table1_${lv}"
+    --level "$lv" --model "$model" --out-dir "results/table1_${lv}"
 done

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The full-size Table I (five policies, 500 main + 500 hard test tasks) with
 # --share-simulations, into results/table1_shared_{main,hard}/ (never the committed
-# results/table1_{main,hard}/), logging every resumed segment's wall time, so that issue 15's
+# results/table1_{main,hard}/), logging every resumed segment's wall time, so that the speed
 # target (the whole table within 4 hours on 2 cores) is measured even when no session lasts that
 # long: the table's wall time is the sum of the "seconds=" of the segments in segments.log, all
 # on one kind of machine (the log names the CPU and the commit of each segment;
@@ -41,7 +41,7 @@ for lv in main hard; do
     "commit=$(git rev-parse --short HEAD) engine=${engine}" >> "$out/segments.log"
   stop_line() { echo "stop  $(date -u +%FT%TZ) seconds=$(( $(date +%s) - start ))" >> "$out/segments.log"; }
   $bin/knotlab bench --policies "$policies" --tasks "$tasks" --level "$lv" \
-    --model results/model_main.npz --out "$out" --workers "$workers" --share-simulations \
+    --model results/model_main.npz --out-dir "$out" --workers "$workers" --share-simulations \
     "${engine_flags[@]}" &
   bench=$!
   # `|| true`: under set -e a failing kill (the bench already gone) would end the trap early;

@@ -21,7 +21,7 @@ import numpy as np
 from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
 from knotlab.core.demos.tasks import RopeTask, TaskSet, task_seed
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
-from knotlab.core.world.knot_sequence import overhand_sequence
+from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
 from knotlab.core.world.rope import straight_rope
 
 # (shift in metres, turn about z in degrees) of each demonstration, in start-index order.

@@ -1,4 +1,4 @@
-"""The layering contract of ../shared/DESIGN.md, checked on the source: imports point down only.
+"""The layering contract of docs/architecture.md, checked on the source: imports point down only.
 
 core/ imports neither knotlab.app nor knotlab.labeling_db; labeling_db/ does not import the app;
 every package installs under the one distinct name knotlab.*; the command line builds without
@@ -55,7 +55,7 @@ def test_app_uses_only_the_installed_names() -> None:
 
 @pytest.mark.parametrize(
     "folder, subpackages",
-    [("core", {"world", "registration", "demos", "selection", "experiments"})],
+    [("core", {"world", "registration", "demos", "selection", "execution", "experiments", "tasks"})],
 )
 def test_core_is_split_by_stage_of_the_science(folder: str, subpackages: set[str]) -> None:
     found = {p.parent.name for p in (ROOT / folder).glob("*/__init__.py")}

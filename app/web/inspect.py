@@ -20,7 +20,6 @@ from knotlab.app.web.sim_pool import PoolRunner, SimPool
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import DemoTransferer, TransferPlan
 from knotlab.core.selection.explain import Contribution, PolicyChoices, feature_contributions
-from knotlab.core.selection.policies import LookaheadPolicy, StepContext
 from knotlab.core.selection.ranking import RankedDemo, rank_demos
 from knotlab.core.world.sim import RopeWorld
 
@@ -117,14 +116,11 @@ class Inspector:
         self, start_nodes_k3: np.ndarray, path: tuple[str, ...] | list[str], label: str
     ) -> InspectView:
         """The state reached from a start by transferring the demos of ``path`` in turn."""
-        from knotlab.core.registration.planner import apply_demo
-
         with self._lock:
             self.world.reset(np.asarray(start_nodes_k3, dtype=float))
-            fz = self.res.current.featurizer
+            agent = self.res.current.agent
             for key in path:
-                cloud = fz.observe(self.world)
-                apply_demo(self.world, self.res.transferer, cloud, self.res.library.index_of(key))
+                agent.act(self.world, key)
             nodes = self.world.rope_nodes()
         return self.load(nodes, label)
 
@@ -138,7 +134,7 @@ class Inspector:
                 return False
             if self._search is not None and self._search.is_alive():
                 return False
-            generation, scan, phi = self._generation, self._scan, self._phi
+            generation, phi = self._generation, self._phi
             snapshot = self.world.snapshot()
         budget = max(1, depth * width)
         done = [0]
@@ -149,27 +145,26 @@ class Inspector:
             on_update(view)
 
         def search() -> None:
+            name = f"la{depth}x{width}"
             if self.pool is not None:  # a level's expansions side by side in the workers
-                runner = PoolRunner(self.pool, counted)
-                policy = LookaheadPolicy(ranking.model, depth, width, runner=runner)
-                transferer = self.res.transferer
+                agent = ranking.agent.with_policy(name, runner=PoolRunner(self.pool, counted))
+                transferer = agent.transferer
             else:
-                policy = LookaheadPolicy(ranking.model, depth, width)
-                transferer = _CountingTransferer(self.res.transferer, counted)
+                agent = ranking.agent.with_policy(name)
+                transferer = _CountingTransferer(agent.transferer, counted)
             t0 = time.perf_counter()
             try:
                 with self._lock:
                     self.world.restore(snapshot)
-                    ctx = StepContext(
-                        self.world, view.cloud_n3, scan, ranking.featurizer, transferer, 0, 5
-                    )
+                    ctx = agent.context(self.world, view.cloud_n3)
+                    ctx.transferer = transferer
                     ctx._phi_ad = phi
-                    decision = policy.choose(ctx)
+                    decision = agent.policy.choose(ctx)
                     self.world.restore(snapshot)
                 if generation != self._generation:
                     return
                 view.choices.lookahead = decision.action
-                view.choices.lookahead_name = policy.name
+                view.choices.lookahead_name = agent.name
                 view.choices.lookahead_info = {**decision.info, "wall_s": time.perf_counter() - t0}
             except Exception as exc:  # shown in the panel; the inspector stays usable
                 view.search_error = f"{type(exc).__name__}: {exc}"

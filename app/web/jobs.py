@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-# Hyper-parameters of the shipped model (chosen on validation, issue 12): C = 1000, D = 10,
+# Hyper-parameters of the shipped model (chosen on validation, docs/results.md): C = 1000, D = 10,
 # landmarks 50 + 20. A retrain on a few human labels uses the same recipe.
 RETRAIN_C = 1000.0
 RETRAIN_D = 10.0

@@ -24,7 +24,7 @@ from knotlab.core.experiments.playback import (
     export_playback,
     resimulate,
 )
-from knotlab.core.world.stages import Stage
+from knotlab.core.tasks.overhand.stages import Stage
 
 FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
 SPEEDS = ("1x", "2x", "4x", "8x")

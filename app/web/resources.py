@@ -12,16 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from knotlab.core.agent import Agent
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import TaskSet
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.jsonsafe import json_safe
-from knotlab.core.registration import SCAN
-from knotlab.core.registration.library_scan import LibraryRegistrar
-from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.tasks import check_task_of, get_task
 from knotlab.labeling_db.records import StateProvenance
 from knotlab.labeling_db.store import Store
 
@@ -30,12 +29,17 @@ SCAN_THREADS = 2  # threads of one interactive library scan
 
 @dataclass(frozen=True, eq=False)
 class RankingModel:
-    """A model the app can rank with (None model: nearest neighbour) and its featurizer."""
+    """A model the app can rank with (None model: nearest neighbour) and its agent."""
 
     version: str | None  # content hash; None for nearest-neighbour ranking
     source: str  # "store", a file path, or "nearest neighbour"
     model: QModel | None
-    featurizer: LibraryFeaturizer
+    agent: Agent
+
+    @property
+    def featurizer(self) -> LibraryFeaturizer:
+        """The featurizer the model's features come from (its landmarks)."""
+        return self.agent.featurizer
 
     @property
     def label(self) -> str:
@@ -86,7 +90,13 @@ class AppResources:
     """The library, the level's training starts, and the ranking models every tab can use."""
 
     def __init__(
-        self, library: DemoLibrary, tasks: TaskSet, *, top_k: int = 5, overlap: float = 0.0
+        self,
+        library: DemoLibrary,
+        tasks: TaskSet,
+        *,
+        top_k: int = 5,
+        overlap: float = 0.0,
+        task: str | None = None,
     ) -> None:
         if top_k < 1:
             raise InvalidInputError(f"--top-k must be >= 1, got {top_k}")
@@ -96,22 +106,21 @@ class AppResources:
         self.top_k = top_k
         # A seeded share of starts offered to a second labeller, for agreement statistics.
         self.overlap = OverlapPolicy(overlap, seed=0) if overlap > 0 else None
-        self.transferer = DemoTransferer(library)
         # An expert waits on each scan: its chunks run on two threads (the kernel releases the
         # GIL; chunks are independent, so the costs are the same as on one).
-        self.registrar = LibraryRegistrar(SCAN, n_workers=SCAN_THREADS)
-        self._nn_featurizer = LibraryFeaturizer(library, registrar=self.registrar)
+        self.agent = Agent(library, None, "nn", task=task, top_k=top_k, scan_threads=SCAN_THREADS)
+        self.task = self.agent.task
+        self.transferer = self.agent.transferer
+        self.registrar = self.agent.featurizer.registrar
+        self._nn_featurizer = self.agent.featurizer
         self._lock = threading.Lock()
         self._models: dict[str, RankingModel] = {}
-        self._current: RankingModel = RankingModel(
-            None, "nearest neighbour", None, self._nn_featurizer
-        )
+        self._current: RankingModel = RankingModel(None, "nearest neighbour", None, self.agent)
 
     # --- models
     def add_model(self, model: QModel, source: str) -> RankingModel:
         """Make a model available (refused when it does not fit the library); returns it."""
-        featurizer = LibraryFeaturizer.for_model(self.library, model, registrar=self.registrar)
-        ranking = RankingModel(model.content_hash(), source, model, featurizer)
+        ranking = RankingModel(model.content_hash(), source, model, self.agent.with_model(model))
         with self._lock:
             self._models.setdefault(ranking.version or "", ranking)
             return self._models[ranking.version or ""]
@@ -120,7 +129,7 @@ class AppResources:
         """Rank with model ``version`` from now on (None: nearest neighbour)."""
         with self._lock:
             if version is None:
-                self._current = RankingModel(None, "nearest neighbour", None, self._nn_featurizer)
+                self._current = RankingModel(None, "nearest neighbour", None, self.agent)
             elif version not in self._models:
                 raise InvalidInputError(f"no model {version!r} loaded in the app")
             else:
@@ -157,7 +166,7 @@ class AppResources:
         with RopeWorld() as world:  # the cloud a tab will observe, so step 0's label matches it
             for t in todo:
                 world.reset(np.asarray(t.start_nodes_k3))
-                clouds.append(self._nn_featurizer.observe(world))
+                clouds.append(self.agent.observe(world))
         store.register_library(self.library_hash, name=f"{level} library")
         store.add_start_states(
             clouds,
@@ -168,7 +177,11 @@ class AppResources:
 
 
 def load_resources(
-    library_path: Path, tasks_path: Path, top_k: int, overlap: float = 0.0
+    library_path: Path,
+    tasks_path: Path,
+    top_k: int,
+    overlap: float = 0.0,
+    task: str | None = None,
 ) -> AppResources:
     """Library and task set from files (the task set must be a training split)."""
     library = DemoLibrary.load(library_path)
@@ -178,4 +191,5 @@ def load_resources(
             f"{tasks_path}: the app labels training starts only, this task set is the "
             f"{tasks.split!r} split"
         )
-    return AppResources(library, tasks, top_k=top_k, overlap=overlap)
+    check_task_of("task set", tasks.metadata.get("task"), get_task(task or library.task))
+    return AppResources(library, tasks, top_k=top_k, overlap=overlap, task=task)

@@ -1,12 +1,12 @@
 """One expert's labelling session (one browser tab): plain Python, no viser calls.
 
-The protocol is the original system's (lfd_facts section 11) in a browser: the tab holds a
-claimed training start; its state is ranked (the greedy policy's own ranking function); the
-expert selects a candidate and *tries* it in simulation, then accepts it (Y: the label is stored
-in one transaction with the ranking shown, the model version and the rope after the step),
-rejects it (N: state restored, candidate greyed out), marks the result a dead end (F: stored,
-state restored) or abandons the rope (R). U undoes the last accepted label. A knot or the step
-limit ends the episode and the next start is claimed.
+The protocol is the original system's (docs/reference/original_system.md, "Labelling protocol") in a
+browser: the tab holds a claimed training start; its state is ranked (the greedy policy's own
+ranking function); the expert selects a candidate and *tries* it in simulation, then accepts it (Y:
+the label is stored in one transaction with the ranking shown, the model version and the rope after
+the step), rejects it (N: state restored, candidate greyed out), marks the result a dead end (F:
+stored, state restored) or abandons the rope (R). U undoes the last accepted label. A knot or the
+step limit ends the episode and the next start is claimed.
 
 Thread safety: viser runs callbacks on a thread pool, so every public method takes the session's
 lock; ``try_selected`` holds it only to start and to finish, and refuses a second try meanwhile.
@@ -24,9 +24,8 @@ from enum import StrEnum
 import numpy as np
 
 from knotlab.app.web.resources import AppResources, RankingModel
-from knotlab.core.experiments.episode import MAX_STEPS
+from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.registration import ScanResult
-from knotlab.core.registration.planner import ActionOutcome, apply_demo
 from knotlab.core.selection.labels import DeadEndState, LabelledStep
 from knotlab.core.selection.ranking import RankedDemo, rank_demos
 from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
@@ -131,7 +130,7 @@ class LabelSession:
         labeller: str,
         *,
         world: RopeWorld | None = None,
-        max_steps: int = MAX_STEPS,
+        max_steps: int | None = None,
         simulate: Simulate | None = None,
     ) -> None:
         if not labeller.strip():
@@ -139,7 +138,7 @@ class LabelSession:
         self.store = store
         self.res = resources
         self.labeller = labeller.strip()
-        self.max_steps = max_steps
+        self.max_steps = resources.task.step_limit if max_steps is None else max_steps
         self.world = world if world is not None else RopeWorld()
         self._own_world = world is None
         self._simulate = simulate  # None: simulate tries in this process
@@ -313,8 +312,8 @@ class LabelSession:
                 self.world.restore(outcome.snapshot_after)
             else:
                 self.world.restore(snapshot)
-                outcome = apply_demo(
-                    self.world, self.res.transferer, cloud, cand.ranked.demo_index, frames=rec
+                outcome = self.res.agent.act(
+                    self.world, cand.ranked.demo_index, cloud_n3=cloud, frames=rec
                 )
             frames = outcome.execution.frames if outcome.execution is not None else None
             word = "knot" if outcome.knot else (outcome.failure_kind or "progressed")

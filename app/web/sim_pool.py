@@ -15,47 +15,50 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from knotlab.core.execution.apply import ActionOutcome
+from knotlab.core.execution.expansion import ExpansionJob, ExpansionResult, expand
 from knotlab.core.parallel import PerProcess
-from knotlab.core.registration.planner import ActionOutcome
-from knotlab.core.selection.expansion import ExpansionJob, ExpansionResult, expand
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.sim import SimSnapshot
 
+if TYPE_CHECKING:
+    from knotlab.core.agent import Agent
+    from knotlab.core.world.sim import RopeWorld
+
 _DONE = "done"
 
 
-def _build_tools(library_path: str) -> tuple[Any, Any]:
+def _build_tools(library_path: str) -> tuple[RopeWorld, Agent]:
+    """A worker's simulator and nearest-neighbour agent on the app's library."""
+    from knotlab.core.agent import Agent
     from knotlab.core.demos.library import DemoLibrary
-    from knotlab.core.registration.planner import DemoTransferer
     from knotlab.core.world.sim import RopeWorld
 
-    return RopeWorld(), DemoTransferer(DemoLibrary.load(library_path))
+    return RopeWorld(), Agent(DemoLibrary.load(library_path))
 
 
-_TOOLS = PerProcess(_build_tools)  # per worker process: library path -> (world, transferer)
+_TOOLS = PerProcess(_build_tools)  # per worker process: library path -> (world, agent)
 
 
 @dataclass(frozen=True)
-class _FeaturizerSpec:
-    """Which featurizer a worker needs: equal (and kept) while the library and model are."""
+class _ModelSpec:
+    """Which model's agent a worker needs: equal (and kept) while the library and model are."""
 
     library_path: str
     model_hash: str
     model: QModel = field(compare=False, hash=False)
 
 
-def _build_featurizer(spec: _FeaturizerSpec) -> Any:
-    from knotlab.core.selection.features import LibraryFeaturizer
-
-    return LibraryFeaturizer.for_model(_TOOLS.get(spec.library_path)[1].library, spec.model)
+def _build_model_agent(spec: _ModelSpec) -> Agent:
+    return _TOOLS.get(spec.library_path)[1].with_model(spec.model)
 
 
-_FEATURIZER = PerProcess(_build_featurizer)  # per worker: the featurizer of the last model
+_MODEL_AGENT = PerProcess(_build_model_agent)  # per worker: the agent of the last model
 
 
 class _StreamingRecorder(FrameRecorder):
@@ -87,21 +90,19 @@ def _try_job(
     frame_dt: float,
     frames_out: Any,
 ) -> ActionOutcome:
-    from knotlab.core.registration.planner import apply_demo
-
-    world, transferer = _TOOLS.get(library_path)
+    world, agent = _TOOLS.get(library_path)
     try:
         world.restore(snapshot)
         recorder = _StreamingRecorder(frame_dt, frames_out)
-        return apply_demo(world, transferer, cloud_n3, demo_index, frames=recorder)
+        return agent.act(world, demo_index, cloud_n3=cloud_n3, frames=recorder)
     finally:
         frames_out.put(_DONE)
 
 
 def _expand_job(library_path: str, model: QModel, job: ExpansionJob) -> ExpansionResult:
-    world, transferer = _TOOLS.get(library_path)
-    featurizer = _FEATURIZER.get(_FeaturizerSpec(library_path, model.content_hash(), model))
-    return expand(world, transferer, featurizer, model, job)
+    world, _ = _TOOLS.get(library_path)
+    agent = _MODEL_AGENT.get(_ModelSpec(library_path, model.content_hash(), model))
+    return expand(world, agent.transferer, agent.featurizer, model, job)
 
 
 class PoolRunner:

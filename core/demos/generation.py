@@ -30,11 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from knotlab.core.demos.expert import run_expert, sample_start_rope, sample_style
 from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.parallel import PerProcess
 from knotlab.core.seeds import child_seed
+from knotlab.core.tasks.overhand.expert import run_expert, sample_start_rope, sample_style
 from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel, observe
 
 GENERATOR = "knotlab.core.demogen/1"

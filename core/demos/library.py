@@ -98,6 +98,11 @@ class DemoLibrary:
         return self._segments[i]
 
     @property
+    def task(self) -> str:
+        """The task these demos perform (libraries made before tasks were named: overhand)."""
+        return str(self.metadata.get("task", "overhand"))
+
+    @property
     def segments(self) -> tuple[DemoSegment, ...]:
         """All segments, in library order (the action index of the learner)."""
         return self._segments

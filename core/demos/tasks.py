@@ -71,6 +71,11 @@ class TaskSet:
         return iter(self.tasks)
 
     @property
+    def task(self) -> str:
+        """The task whose starts these are (sets made before tasks were named: overhand)."""
+        return str(self.metadata.get("task", "overhand"))
+
+    @property
     def split(self) -> str:
         """'train' or 'test'."""
         return str(self.metadata["split"])

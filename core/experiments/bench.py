@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,12 +41,17 @@ from knotlab.core.atomic import atomic_open, atomic_path
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import RopeTask, TaskSet
 from knotlab.core.errors import InvalidInputError, KnotlabError
+from knotlab.core.execution.memo import OutcomeMemo
 from knotlab.core.machine import machine_info
 from knotlab.core.parallel import PerProcess
 from knotlab.core.seeds import derive_seed
-from knotlab.core.selection.policies import OutcomeMemo, policy_config
+from knotlab.core.selection.policies import policy_config
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.tasks import check_task_of, get_task
 from knotlab.core.world.observation import ObservationModel
+
+if TYPE_CHECKING:  # the agent imports the simulator's records: only for the checker
+    from knotlab.core.agent import Agent
 
 log = logging.getLogger(__name__)
 
@@ -295,40 +301,31 @@ class WorkerSpec:
 
     library: DemoLibrary
     model: QModel | None = None
+    task: str | None = None  # None: the task the library records
 
 
 class BenchWorker:
-    """A worker's warm state: world, featurizer (registration cache warm), transferer, policies."""
+    """A worker's warm state: a world and one agent per policy, all on one warm featurizer."""
 
     def __init__(self, spec: WorkerSpec) -> None:
+        from knotlab.core.agent import Agent
         from knotlab.core.parallel import single_thread_blas
-        from knotlab.core.registration.planner import DemoTransferer
-        from knotlab.core.selection.features import LibraryFeaturizer
         from knotlab.core.world.sim import RopeWorld
 
         single_thread_blas()
         self.spec = spec
         self.world = RopeWorld()
-        self.featurizer = (
-            LibraryFeaturizer.for_model(spec.library, spec.model)
-            if spec.model is not None
-            else LibraryFeaturizer(spec.library)
-        )
-        # Warm the demo-side factorisation now, not inside the first timed decision.
-        self.featurizer.registrar.prepare(
-            spec.library.clouds(), self.featurizer.library_hash, self.featurizer.params
-        )
-        self.transferer = DemoTransferer(spec.library)
-        self._policies: dict = {}
+        # The base agent (nearest neighbour) checks the library and model once and warms the
+        # registrar; every policy's agent shares its caches.
+        self.agent = Agent(spec.library, spec.model, "nn", task=spec.task)
+        self._agents: dict[str, Agent] = {"nn": self.agent}
         self.node = _ray_node_id()
 
-    def policy(self, name: str):
-        """The named policy, built on first use."""
-        from knotlab.core.selection.policies import make_policy
-
-        if name not in self._policies:
-            self._policies[name] = make_policy(name, self.spec.model)
-        return self._policies[name]
+    def agent_for(self, name: str) -> Agent:
+        """The agent of policy ``name``, built on first use."""
+        if name not in self._agents:
+            self._agents[name] = self.agent.with_policy(name)
+        return self._agents[name]
 
     def run_group(self, jobs: Sequence[EpisodeJob]) -> list[dict]:
         """Run one task's episodes (one per policy) with one outcome memo shared between them.
@@ -348,11 +345,9 @@ class BenchWorker:
         t0 = time.perf_counter()
         try:
             record = run_episode(
+                self.agent_for(job.policy),
                 self.world,
                 job.start_nodes_k3,
-                self.policy(job.policy),
-                self.featurizer,
-                self.transferer,
                 task_id=job.task_id,
                 seed=job.seed,
                 max_steps=job.max_steps,
@@ -762,25 +757,16 @@ def run_bench(
     if learned and model is None:
         raise InvalidInputError(f"policies {learned} need a trained model")
     lib_hash = library.content_hash()
-    model_spec = model.feature_spec if learned and model is not None else {}
-    if learned and model_spec.get("library_hash") not in (None, lib_hash):
-        raise InvalidInputError(
-            f"the model was trained on library {model_spec.get('library_hash')}, "
-            f"this library is {lib_hash}: retrain it with `knotlab train`"
-        )
-    observation = ObservationModel.of_library_metadata(library.metadata)
-    model_obs = model_spec.get("observation_model") or "cloud"
-    if learned and ObservationModel.parse(model_obs) is not observation:
-        raise InvalidInputError(
-            f"the model was trained on '{model_obs}' observations, this library's are "
-            f"'{observation.value}': use a library and model made with the same observation model"
-        )
+    check_task_of("task set", task_set.metadata.get("task"), get_task(library.task))
     if learned and model is not None:
+        from knotlab.core.selection.compatibility import check_compatible
         from knotlab.core.selection.features import LibraryFeaturizer
 
-        # Every worker builds this featurizer; a mismatch found there would surface as a broken
-        # pool after run.json was written. Found here, nothing is.
-        LibraryFeaturizer.for_model(library, model)
+        # Every worker builds an Agent that checks this again; a mismatch found there would
+        # surface as a broken pool after run.json was written. Found here, nothing is.
+        check_compatible(library, model, get_task(library.task))
+        LibraryFeaturizer.for_model(library, model)  # its feature columns match the model's
+    observation = ObservationModel.of_library_metadata(library.metadata)
 
     out = Path(out_dir)
     outcome_log = OutcomeLog(out / OUTCOMES_FILE)
@@ -840,6 +826,7 @@ def run_bench(
         "arguments": dict(arguments or {}),
         "identity": asdict(identity),
         "library_hash": lib_hash,
+        "task": library.task,
         "observation_model": observation.value,
         "model_hash": model.content_hash() if model is not None else None,
         "model_hyperparameters": model.hyperparameters if model is not None else None,

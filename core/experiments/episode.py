@@ -1,4 +1,4 @@
-"""Run one knot-tying episode (at most 5 steps) with any policy, recording every step.
+"""Run one episode (up to the task's step limit) with an agent, recording every step.
 
 A failed registration, a misgrasp, a simulation blow-up or a numerical error inside a step is a
 recorded step outcome, never an exception that would end a long benchmark: the episode ends as a
@@ -13,20 +13,24 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from knotlab.core.errors import KnotlabError
+from knotlab.core.execution.apply import ActionOutcome
+from knotlab.core.execution.memo import OutcomeMemo, execute_with_memo
 from knotlab.core.failures import FailureKind
-from knotlab.core.registration.planner import ActionOutcome, DemoTransferer
 from knotlab.core.seeds import derive_seed
-from knotlab.core.selection.features import LibraryFeaturizer
-from knotlab.core.selection.policies import OutcomeMemo, Policy, StepContext, execute_with_memo
+from knotlab.core.selection.decision import StepContext
 from knotlab.core.world.trajectory import GripperTrajectory
+
+if TYPE_CHECKING:  # the agent builds episodes; the simulator imports pybullet
+    from knotlab.core.agent import Agent
+    from knotlab.core.world.sim import RopeWorld
 
 log = logging.getLogger(__name__)
 
-MAX_STEPS = 5
 FAILURE_KINDS: tuple[str, ...] = tuple(k.value for k in FailureKind)
 _NUMERIC_ERRORS = (KnotlabError, FloatingPointError, np.linalg.LinAlgError, ValueError)
 NODES_UNIT_M = 1e-4  # rope nodes in results files: int16 tenths of a millimetre (+-3.2 m)
@@ -176,19 +180,18 @@ def _classify(outcome: ActionOutcome) -> str:
 
 
 def run_episode(
-    world,
+    agent: Agent,
+    world: RopeWorld,
     start_nodes_k3: np.ndarray,
-    policy: Policy,
-    featurizer: LibraryFeaturizer,
-    transferer: DemoTransferer,
     *,
     task_id: str = "task",
     seed: int = 0,
-    max_steps: int = MAX_STEPS,
+    max_steps: int | None = None,
     observe_noise: float = 0.0,
     memo: OutcomeMemo | None = None,
 ) -> EpisodeRecord:
-    """Reset the world to the start rope and act with ``policy`` until a knot or ``max_steps``.
+    """Reset the world to the start rope and act with ``agent`` until its task's goal or
+    ``max_steps`` (default: the task's step limit).
 
     ``memo``: simulated outcomes shared with the other policies run on this task (same start,
     same seed), so an execution another policy already simulated is restored, not simulated
@@ -198,37 +201,47 @@ def run_episode(
     steps: list[StepRecord] = []
     failure_kind: FailureKind | None = FailureKind.NO_KNOT
     error: str | None = None
+    limit = agent.task.step_limit if max_steps is None else max_steps
     try:
         world.reset(start_nodes_k3)
     except _NUMERIC_ERRORS as exc:  # a bad start state is this episode's failure, not the run's
         log.warning("task %s: cannot reset to its start state: %s", task_id, exc)
         return EpisodeRecord(
             task_id,
-            policy.name,
+            agent.name,
             False,
             [],
             FailureKind.ERROR,
             f"{type(exc).__name__}: {exc}",
             time.perf_counter() - t_episode,
         )
-    keys = featurizer.library.keys
-    for step in range(max_steps):
+    keys = agent.library.keys
+    for step in range(limit):
         nodes_before = world.rope_nodes()
         try:
             t0 = time.perf_counter()
-            cloud = featurizer.observe(world, noise=observe_noise, seed=step_seed(seed, step))
-            scan = featurizer.scan(cloud)
+            cloud = agent.observe(world, noise=observe_noise, seed=step_seed(seed, step))
+            scan = agent.scan(cloud)
             t_scan = time.perf_counter() - t0
             ctx = StepContext(
-                world, cloud, scan, featurizer, transferer, step, max_steps - step, memo
+                world,
+                cloud,
+                scan,
+                agent.featurizer,
+                agent.transferer,
+                step,
+                limit - step,
+                memo,
             )
-            decision = policy.choose(ctx)
+            decision = agent.policy.choose(ctx)
             t_decide = time.perf_counter() - t0
             if decision.outcome is not None:
                 world.restore(decision.outcome.snapshot_after)
                 outcome = decision.outcome
             else:
-                outcome = execute_with_memo(memo, world, transferer, cloud, decision.action)
+                outcome = execute_with_memo(
+                    memo, world, agent.transferer, cloud, decision.action, task=agent.task
+                )
         except _NUMERIC_ERRORS as exc:
             log.warning("task %s step %d: %s: %s", task_id, step, type(exc).__name__, exc)
             failure_kind, error = FailureKind.ERROR, f"{type(exc).__name__}: {exc}"
@@ -274,7 +287,7 @@ def run_episode(
         failure_kind = FailureKind.MISGRASP  # ran out of steps after at least one empty grasp
     return EpisodeRecord(
         task_id,
-        policy.name,
+        agent.name,
         success,
         steps,
         None if success else failure_kind,

@@ -25,12 +25,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from knotlab.core.parallel import PerProcess
-from knotlab.core.registration.planner import DemoTransferer, apply_demo
-from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
-from knotlab.core.world.stages import Stage, rope_stage
 
-if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+if TYPE_CHECKING:  # the agent and the simulator: only for the checker
+    from knotlab.core.agent import Agent
     from knotlab.core.world.sim import RopeWorld
 
 
@@ -39,7 +37,7 @@ class OracleParams:
     """Settings of the oracle labeller's bounded search."""
 
     candidates: int = 10  # lowest-cost demos tried per state (the original's MAX_ACTIONS_TO_TRY)
-    max_steps: int = 5
+    max_steps: int | None = None  # None: the task's step limit
     sim_budget: int = 60  # simulated actions per task, all branches together
 
 
@@ -57,8 +55,7 @@ class OracleResult:
 @dataclass
 class _Search:
     world: RopeWorld
-    featurizer: LibraryFeaturizer
-    transferer: DemoTransferer
+    agent: Agent
     params: OracleParams
     sims: int = 0
     exhausted: bool = False
@@ -66,11 +63,12 @@ class _Search:
 
     def solve(self, snapshot, cloud_n3, nodes_k3, stage: int, steps_left: int):
         """Steps to a knot within ``steps_left`` from this state, or None; and if exhaustive."""
-        scan = self.featurizer.scan(cloud_n3)
+        scan = self.agent.scan(cloud_n3)
         cost = np.where(scan.ok_a, scan.nn_cost_a, np.inf)
         order = [int(a) for a in np.argsort(cost, kind="stable")[: self.params.candidates]]
         order = [a for a in order if np.isfinite(cost[a])]
-        keys = self.featurizer.library.keys
+        keys = self.agent.library.keys
+        goal_stage = len(self.agent.task.stage_names) - 1
         shown = tuple(keys[a] for a in order)
         shown_scores = np.array([cost[a] for a in order])
         deferred = []  # outcomes that kept the stage: tried only if nothing advances
@@ -80,7 +78,7 @@ class _Search:
                 self.exhausted = True
                 return None, False
             self.world.restore(snapshot)
-            outcome = apply_demo(self.world, self.transferer, cloud_n3, a)
+            outcome = self.agent.act(self.world, a, cloud_n3=cloud_n3)
             self.sims += 1
 
             def step(label: str, a: int = a) -> LabelledStep:
@@ -95,7 +93,7 @@ class _Search:
                 if result is not None:
                     return [step("progressed"), *result], True
                 complete &= exhaustive
-            elif outcome.stage == stage and steps_left - 1 > Stage.KNOT - stage:
+            elif outcome.stage == stage and steps_left - 1 > goal_stage - stage:
                 deferred.append((a, outcome))
         for a, outcome in deferred:
             result, exhaustive = self._descend(outcome, steps_left)
@@ -109,7 +107,7 @@ class _Search:
 
     def _descend(self, outcome, steps_left: int):
         self.world.restore(outcome.snapshot_after)
-        child_cloud = self.featurizer.observe(self.world)
+        child_cloud = self.agent.observe(self.world)
         nodes = outcome.nodes_after_k3
         result, exhaustive = self.solve(
             outcome.snapshot_after, child_cloud, nodes, outcome.stage, steps_left - 1
@@ -120,10 +118,9 @@ class _Search:
 
 
 def label_task(
-    world,
+    agent: Agent,
+    world: RopeWorld,
     start_nodes_k3: np.ndarray,
-    featurizer: LibraryFeaturizer,
-    transferer: DemoTransferer,
     *,
     task_id: str,
     params: OracleParams = OracleParams(),
@@ -132,11 +129,12 @@ def label_task(
     t0 = time.perf_counter()
     world.reset(start_nodes_k3)
     snapshot = world.snapshot()
-    cloud = featurizer.observe(world)
+    cloud = agent.observe(world)
     nodes = world.rope_nodes()
-    stage, _ = rope_stage(nodes)
-    search = _Search(world, featurizer, transferer, params)
-    steps, _ = search.solve(snapshot, cloud, nodes, stage, params.max_steps)
+    stage = agent.task.stage(nodes).stage
+    search = _Search(world, agent, params)
+    max_steps = agent.task.step_limit if params.max_steps is None else params.max_steps
+    steps, _ = search.solve(snapshot, cloud, nodes, stage, max_steps)
     steps = steps or []
     labelled = tuple(
         LabelledStep(
@@ -158,7 +156,7 @@ def label_task(
         ended_in_knot=bool(labelled) and labelled[-1].outcome == "knot",
         dead_ends=tuple(search.dead_ends),
         task_id=task_id,
-        library_hash=featurizer.library_hash,
+        library_hash=agent.featurizer.library_hash,
         metadata={
             "simulations": search.sims,
             "candidates": params.candidates,
@@ -179,23 +177,21 @@ class _LabelJob:
     params: OracleParams
 
 
-def _build_tools(library_path: str) -> tuple:
-    """The world, featurizer and transferer for one library (built once per worker process)."""
+def _build_tools(library_path: str) -> tuple[RopeWorld, Agent]:
+    """A world and a nearest-neighbour agent on one library (built once per worker process)."""
+    from knotlab.core.agent import Agent
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.world.sim import RopeWorld
 
-    library = DemoLibrary.load(library_path)
-    return (RopeWorld(), LibraryFeaturizer(library), DemoTransferer(library))
+    return RopeWorld(), Agent(DemoLibrary.load(library_path))
 
 
-_TOOLS = PerProcess(_build_tools)  # per process: library path -> (world, featurizer, transferer)
+_TOOLS = PerProcess(_build_tools)  # per process: library path -> (world, agent)
 
 
 def _label_job(job: _LabelJob) -> OracleResult:
-    world, featurizer, transferer = _TOOLS.get(job.library_path)
-    return label_task(
-        world, job.start_nodes_k3, featurizer, transferer, task_id=job.task_id, params=job.params
-    )
+    world, agent = _TOOLS.get(job.library_path)
+    return label_task(agent, world, job.start_nodes_k3, task_id=job.task_id, params=job.params)
 
 
 def oracle_label_tasks(

@@ -27,6 +27,7 @@ from knotlab.core.errors import InvalidInputError, KnotlabError
 from knotlab.core.experiments.episode import decode_nodes, step_seed
 from knotlab.core.selection.labels import LabelledExecution
 from knotlab.core.world.frames import FrameRecorder
+from knotlab.core.world.render import rope_width_pt, table_axes, table_figure, thick_line
 
 NODES_TOLERANCE_M = 0.002  # replayed vs recorded rope before a step: more is a warning
 FORMATS: tuple[str, ...] = (".gif", ".mp4")
@@ -182,7 +183,8 @@ def resimulate(
     episode: PlaybackEpisode, library: DemoLibrary, *, dt: float, progress: bool = False
 ) -> Replay:
     """Reset to the start and apply the recorded demos, recording a frame every ``dt`` sim s."""
-    from knotlab.core.registration.planner import DemoTransferer, apply_demo
+    from knotlab.core.execution.apply import apply_demo
+    from knotlab.core.registration.planner import DemoTransferer
     from knotlab.core.world.observation import ObservationModel, observe
     from knotlab.core.world.sim import RopeWorld
 
@@ -263,8 +265,6 @@ def _caption(episode: PlaybackEpisode, replay: Replay, i: int) -> str:
 
 def render_frames(episode: PlaybackEpisode, replay: Replay, *, size: int = 400) -> list:
     """Every frame as a PIL image (top-down view, fixed limits, caption at the top)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from PIL import Image
 
     # Frame the rope and the grippers while they hold it: an idle gripper parked far away
@@ -275,18 +275,10 @@ def render_frames(episode: PlaybackEpisode, replay: Replay, *, size: int = 400) 
     xy = xy[np.isfinite(xy).all(axis=1)]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     centre, span = 0.5 * (lo + hi), float((hi - lo).max()) + 0.1
-    dpi = 100
-    fig = Figure(figsize=(size / dpi, size / dpi), dpi=dpi)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 0.92))
-    ax.set_facecolor("#e9e4d8")  # the table
-    ax.set_xlim(centre[0] - span / 2, centre[0] + span / 2)
-    ax.set_ylim(centre[1] - span / 2, centre[1] + span / 2)
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    width = max(2.0, 0.02 * size / span * 72 / dpi)  # the rope's 2 cm diameter, in points
-    (rope,) = ax.plot([], [], color="#3b5b92", lw=width, solid_capstyle="round")
+    fig, canvas = table_figure(size, size)
+    ax = table_axes(fig, (0.0, 0.0, 1.0, 0.92), centre, span)
+    width = max(2.0, rope_width_pt(0.02, size, span))  # the rope's 2 cm diameter, in points
+    rope = thick_line(ax, [], [], color="#3b5b92", width=width)
     (end,) = ax.plot([], [], "o", color="#c44e52", ms=width * 0.9)  # one end: shows direction
     grip = ax.scatter([np.nan, np.nan], [np.nan, np.nan], s=80, zorder=3)
     title = fig.text(0.5, 0.96, "", ha="center", va="center", fontsize=8)

@@ -50,29 +50,26 @@ def try_jobs(
 
 
 class _Trier:
-    """A worker's simulator and transferer."""
+    """A worker's simulator and agent (it only acts: the candidates come with the job)."""
 
     def __init__(self, library: DemoLibrary) -> None:
+        from knotlab.core.agent import Agent
         from knotlab.core.parallel import single_thread_blas
-        from knotlab.core.registration.planner import DemoTransferer
         from knotlab.core.world.sim import RopeWorld
 
         single_thread_blas()
-        self.library = library
         self.world = RopeWorld()
-        self.transferer = DemoTransferer(library)
+        self.agent = Agent(library)
 
     def run(self, job: TryJob) -> StateTries:
-        from knotlab.core.registration.planner import apply_demo
-        from knotlab.core.world.stages import rope_stage
-
+        """Each candidate of the job executed once from the labelled state at rest."""
         self.world.reset(job.nodes_k3)
         start = self.world.snapshot()
-        before = int(rope_stage(self.world.rope_nodes())[0])
+        before = self.agent.task.stage(self.world.rope_nodes()).stage
         tried = []
         for key in job.candidates:
             self.world.restore(start)
-            out = apply_demo(self.world, self.transferer, job.cloud_n3, self.library.index_of(key))
+            out = self.agent.act(self.world, key, cloud_n3=job.cloud_n3)
             tried.append(TriedDemo(key, int(out.stage), bool(out.knot), out.failure))
         return StateTries(job.execution_id, job.step_index, before, tuple(tried))
 

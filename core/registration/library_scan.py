@@ -15,19 +15,16 @@ import numpy as np
 
 from knotlab.core.atomic import atomic_path
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration.chunks import run_chunks
 from knotlab.core.registration.params import CACHE_VERSION, SCAN, RegistrationParams, clean_cloud
+from knotlab.core.registration.results import ScanResult
 from knotlab.core.registration.rpm import (
-    CloudSide,
     FirstIteration,
-    ScanResult,
     can_start_early,
-    demo_side,
     first_iteration_batch,
     first_iteration_inputs,
-    normalise_cloud,
-    run_chunks,
-    scene_side,
 )
+from knotlab.core.registration.sides import CloudSide, demo_side, normalise_cloud, scene_side
 
 # Demos per early first-iteration batch: the early worker checks between batches whether the
 # scene basis is ready, so this bounds how long the scan waits for it (~0.3 ms at 150 points).

@@ -23,10 +23,10 @@ class RegistrationParams:
     and the affinity is exp(-d / (2 T)) with d and T in metres. The kernel works in coordinates
     divided by `scale_m`; `normalised_schedule` and `normalised_rot_coef` convert once (lambda / s,
     T / s, R / s^2), so changing `scale_m` leaves the world-space fit unchanged (tested). Stating
-    R in the internal units made it 1 / s^2 = 4x weaker than meant (issue 12's bug A).
+    R in the internal units made it 1 / s^2 = 4x weaker than meant ("bug A").
     Defaults: the paper-era rll/lfd schedule as this project ran it (lambda 0.1 -> 0.001 and
     T 0.1 -> 0.005 in units of 0.5 m) and the identity pull (1e-3, 1e-3, 0.1) that made transfer
-    work in the rope-world prototype (transfer_notes.md).
+    work in the rope-world prototype (docs/reference/registration.md, "The identity pull").
     """
 
     n_iter: int = 10

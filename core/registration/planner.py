@@ -11,7 +11,6 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,14 +19,10 @@ from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import KnotlabError
 from knotlab.core.failures import FailureKind
 from knotlab.core.registration import EXACT, Registration, RegistrationParams
-from knotlab.core.registration.rpm import CloudSide, one_demo_side, register_sides, scene_side
+from knotlab.core.registration.rpm import register_sides
+from knotlab.core.registration.sides import CloudSide, one_demo_side, scene_side
 from knotlab.core.registration.transfer import warp_trajectory
-from knotlab.core.world.frames import FrameRecorder
-from knotlab.core.world.stages import Stage
 from knotlab.core.world.trajectory import GripperTrajectory
-
-if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
-    from knotlab.core.world.sim import ExecutionResult, SimSnapshot
 
 # Warped waypoints are clipped into the reachable box above the table: a warp that pushes a
 # waypoint into the table (or absurdly high) is a transfer artefact, not an intention.
@@ -112,66 +107,3 @@ class DemoTransferer:
         traj = warped.with_positions(pos, warped.rotations_gt33)
         timings["warp_s"] = time.perf_counter() - t1
         return TransferPlan(demo_index, traj, reg, None, timings)
-
-
-@dataclass(frozen=True, eq=False)
-class ActionOutcome:
-    """What executing one transferred demo did to the world."""
-
-    plan: TransferPlan
-    execution: ExecutionResult | None  # None when nothing was executed
-    nodes_after_k3: np.ndarray
-    knot: bool
-    stage: Stage
-    gauss_code: str
-    snapshot_after: SimSnapshot
-
-    @property
-    def failure(self) -> str | None:
-        """Why this action failed outright (registration, misgrasp, explosion), else None."""
-        if not self.plan.ok:
-            return self.plan.failure
-        if self.execution is not None and not self.execution.ok:
-            return self.execution.failure
-        return None
-
-    @property
-    def failure_kind(self) -> FailureKind | None:
-        """The kind of :attr:`failure` as set where it happened (planner or simulator)."""
-        if not self.plan.ok:
-            return self.plan.failure_kind
-        if self.execution is not None:
-            return self.execution.failure_kind
-        return None
-
-    @property
-    def exploded(self) -> bool:
-        """The simulation blew up: the world cannot continue from here."""
-        return self.failure_kind is FailureKind.EXPLODED
-
-
-def apply_demo(
-    world,
-    transferer: DemoTransferer,
-    cloud_n3: np.ndarray,
-    demo_index: int,
-    frames: FrameRecorder | None = None,
-):
-    """Plan demo ``demo_index`` onto the cloud, execute it in ``world``, analyse the result.
-
-    A ``frames`` recorder records the execution for animation (``outcome.execution.frames``).
-    """
-    from knotlab.core.world.stages import rope_stage
-
-    plan = transferer.plan(cloud_n3, demo_index)
-    execution = None
-    if plan.ok:
-        t0 = time.perf_counter()
-        execution = world.execute(plan.trajectory, frames=frames)
-        plan.timings["execute_s"] = time.perf_counter() - t0
-    nodes = world.rope_nodes()
-    if np.all(np.isfinite(nodes)):
-        stage, code = rope_stage(nodes)
-    else:
-        stage, code = Stage.OTHER, ""
-    return ActionOutcome(plan, execution, nodes, stage is Stage.KNOT, stage, code, world.snapshot())

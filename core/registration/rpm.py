@@ -30,6 +30,9 @@ normalised ("unit-box") coordinates; f and g are returned in world coordinates.
 
 The annealing loop itself is one numba kernel (`rpm_kernel`, see the comment above it); the
 single-pair `register` runs it as a batch of one, so a scan and a pair use the same code.
+This module drives that kernel (its inputs, the early first iteration, `rpm_batch`) and registers
+one pair; the normalised clouds are `sides`, a scan's chunks over workers `chunks`, and what comes
+back `results`.
 
 Shape suffixes: a demos, b demos in a chunk, n demo points (padded), m scene points, k TPS
 basis coefficients, 3 xyz.
@@ -38,13 +41,12 @@ basis coefficients, 3 xyz.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
-from concurrent.futures import Executor, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from knotlab.core.errors import InvalidInputError, SolverError
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.registration.chunks import _ChunkOut, run_chunks
 from knotlab.core.registration.kernel import (
     PHASES,
     TARGET_RULES,
@@ -53,149 +55,11 @@ from knotlab.core.registration.kernel import (
     padded_length,
     rpm_kernel,
 )
-from knotlab.core.registration.params import (
-    COST_NAMES,
-    EXACT,
-    RegistrationCosts,
-    RegistrationParams,
-    clean_cloud,
-)
-from knotlab.core.registration.tps import ThinPlateSpline, TpsBasis, tps_basis
-
-
-def _pad_last_axis(arr: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """arr in dtype, C-contiguous, its last axis zero-padded to `padded_length`."""
-    out = np.zeros((*arr.shape[:-1], padded_length(arr.shape[-1])), dtype)
-    out[..., : arr.shape[-1]] = arr
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class CloudSide:
-    """One side's clouds, normalised and factorised, padded to a common size (float64)."""
-
-    clouds: tuple[np.ndarray, ...]  # cleaned world clouds (empty array for a bad one)
-    centre_a3: np.ndarray  # median of each cloud (world)
-    x_an3: np.ndarray  # normalised, zero-padded
-    mask_an: np.ndarray  # bool, valid points
-    g_ank: np.ndarray
-    mu_ak: np.ndarray
-    h_ak3: np.ndarray
-    theta_apk: np.ndarray  # [t; B; W] = theta e, W rows padded
-    n_a: np.ndarray  # valid points per cloud
-    ok_a: np.ndarray
-    reason_a: tuple[str, ...]
-    _casts: dict = field(default_factory=dict, repr=False)
-
-    def cast(self, dtype: np.dtype) -> dict[str, np.ndarray]:
-        """The arrays the RPM loop reads, in its dtype, converted once and kept."""
-        key = np.dtype(dtype).str
-        if key not in self._casts:
-            self._casts[key] = {
-                "x_an3": self.x_an3.astype(dtype),
-                # rows zero-padded to the kernel's vector length (`padded_length`)
-                "g_ank": _pad_last_axis(self.g_ank, dtype),
-                "gt_akn": _pad_last_axis(np.swapaxes(self.g_ank, 1, 2), dtype),
-                "mu_ak": self.mu_ak.astype(dtype),
-                "h_ak3": self.h_ak3.astype(dtype),
-            }
-        return self._casts[key]
-
-    def __len__(self) -> int:
-        return int(self.n_a.shape[0])
-
-    def basis(self, a: int) -> TpsBasis:
-        """The TpsBasis of cloud a (normalised coordinates)."""
-        n = int(self.n_a[a])
-        k = n + 4  # coefficients past the cloud's own count are zero padding
-        return TpsBasis(
-            self.x_an3[a, :n],
-            np.zeros(3),
-            self.g_ank[a, :n, :k],
-            self.mu_ak[a, :k],
-            self.h_ak3[a, :k],
-            self.theta_apk[a, : 4 + n, :k],
-        )
-
-
-def normalise_cloud(cloud: np.ndarray, params: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
-    """(median centre, cloud translated by it and divided by scale_m): the normalised cloud."""
-    centre = np.median(cloud, axis=0)
-    return centre, (cloud - centre) / params.scale_m
-
-
-def _build_side(
-    clouds: Sequence[np.ndarray | None], reasons: Sequence[str], params: RegistrationParams
-) -> CloudSide:
-    """Normalise and factorise each cloud; a cloud that cannot be factorised is marked not ok."""
-    n_max = max([len(c) for c in clouds if c is not None] + [5])
-    k_max = n_max + 4
-    n_clouds = len(clouds)
-    side = dict(
-        centre_a3=np.zeros((n_clouds, 3)),
-        x_an3=np.zeros((n_clouds, n_max, 3)),
-        mask_an=np.zeros((n_clouds, n_max), dtype=bool),
-        g_ank=np.zeros((n_clouds, n_max, k_max)),
-        mu_ak=np.zeros((n_clouds, k_max)),
-        h_ak3=np.zeros((n_clouds, k_max, 3)),
-        theta_apk=np.zeros((n_clouds, 4 + n_max, k_max)),
-        n_a=np.zeros(n_clouds, dtype=int),
-    )
-    ok = np.zeros(n_clouds, dtype=bool)
-    reason = list(reasons)
-    kept: list[np.ndarray] = []
-    for a, cloud in enumerate(clouds):
-        kept.append(np.zeros((0, 3)) if cloud is None else cloud)
-        if cloud is None:
-            continue
-        centre, x = normalise_cloud(cloud, params)
-        try:
-            basis = tps_basis(x, params.normalised_rot_coef)
-        except SolverError as exc:
-            reason[a] = str(exc)
-            continue
-        n, k = len(x), basis.n_coef
-        side["centre_a3"][a] = centre
-        side["x_an3"][a, :n] = x
-        side["mask_an"][a, :n] = True
-        side["g_ank"][a, :n, :k] = basis.g_nk
-        side["mu_ak"][a, :k] = basis.mu_k
-        side["h_ak3"][a, :k] = basis.h_k3
-        side["theta_apk"][a, : 4 + n, :k] = basis.theta_pk
-        side["n_a"][a] = n
-        ok[a] = True
-    return CloudSide(clouds=tuple(kept), ok_a=ok, reason_a=tuple(reason), **side)  # type: ignore[arg-type]
-
-
-def demo_side(demo_clouds: Sequence[np.ndarray], params: RegistrationParams) -> CloudSide:
-    """Demo side of a library: a bad demo cloud is reported (not ok + reason), never raised."""
-    cleaned: list[np.ndarray | None] = []
-    reasons: list[str] = []
-    for a, cloud in enumerate(demo_clouds):
-        arr = np.asarray(cloud)
-        if arr.ndim != 2 or arr.shape[-1] != 3:
-            raise InvalidInputError(f"demo cloud {a} must have shape (n, 3), got {arr.shape}")
-        try:
-            cleaned.append(clean_cloud(arr, f"demo cloud {a}", params.max_points))
-            reasons.append("")
-        except InvalidInputError as exc:
-            cleaned.append(None)
-            reasons.append(str(exc))
-    if not cleaned:
-        raise InvalidInputError("the demo library is empty")
-    return _build_side(cleaned, reasons, params)
-
+from knotlab.core.registration.params import COST_NAMES, EXACT, RegistrationParams
+from knotlab.core.registration.results import Registration
+from knotlab.core.registration.sides import CloudSide, one_demo_side, scene_side
 
 # ----------------------------------------------------------------------------- the RPM core
-
-
-@dataclass(frozen=True, eq=False)
-class _ChunkOut:
-    e_f: np.ndarray  # (b, k, 3)
-    e_g: np.ndarray  # (b, k_y, 3)
-    costs_bc: np.ndarray
-    corr_bnm: np.ndarray | None
-    failed: dict[int, str]
 
 
 def _solve_weighted(
@@ -506,173 +370,7 @@ def _run_kernel(
     )
 
 
-# ----------------------------------------------------------------------------- results
-
-
-@dataclass(frozen=True, eq=False)
-class Registration:
-    """One bidirectional registration: f (demo -> scene), g (scene -> demo), world coordinates."""
-
-    f: ThinPlateSpline
-    g: ThinPlateSpline
-    costs: RegistrationCosts
-    ok: bool
-    reason: str
-    corr_nm: np.ndarray | None  # row-normalised soft correspondence (demo point i, scene point j)
-
-    @property
-    def nn_cost(self) -> float:
-        """Nearest-neighbour cost (paper-era GPU batch), +inf when not ok."""
-        return self.costs.nn_cost if self.ok else float("inf")
-
-
-@dataclass(frozen=True, eq=False)
-class ScanResult:
-    """Registrations of one scene against every demo a; arrays over demos."""
-
-    params: RegistrationParams
-    costs_ac: np.ndarray  # columns COST_NAMES; +inf rows where not ok
-    ok_a: np.ndarray
-    reason_a: tuple[str, ...]
-    e_f_ak3: np.ndarray
-    e_g_ak3: np.ndarray
-    corr_anm: np.ndarray | None
-    _demo: CloudSide
-    _scene: CloudSide
-
-    @property
-    def nn_cost_a(self) -> np.ndarray:
-        """map_fwd + map_bwd + bend_f + bend_g per demo (+inf where not ok); lower is better."""
-        return self.costs_ac[:, :4].sum(axis=1)
-
-    def cost(self, name: str) -> np.ndarray:
-        """One cost column by name (see COST_NAMES)."""
-        return self.costs_ac[:, COST_NAMES.index(name)]
-
-    def costs(self, a: int) -> RegistrationCosts:
-        """Cost record of demo a."""
-        return RegistrationCosts(*(float(v) for v in self.costs_ac[a]))
-
-    def f(self, a: int) -> ThinPlateSpline:
-        """f_a: demo a's cloud -> scene, world coordinates."""
-        s = self.params.scale_m
-        basis = self._demo.basis(a)
-        spline = basis.spline(self.e_f_ak3[a, : basis.n_coef])
-        return spline.compose_affine(s, self._demo.centre_a3[a], self._scene.centre_a3[0])
-
-    def g(self, a: int) -> ThinPlateSpline:
-        """g_a: scene -> demo a's cloud, world coordinates."""
-        s = self.params.scale_m
-        basis = self._scene.basis(0)
-        spline = basis.spline(self.e_g_ak3[a, : basis.n_coef])
-        return spline.compose_affine(s, self._scene.centre_a3[0], self._demo.centre_a3[a])
-
-    def registration(self, a: int) -> Registration:
-        """Everything about demo a as a Registration record."""
-        corr = None if self.corr_anm is None else self.corr_anm[a, : self._demo.n_a[a]]
-        return Registration(
-            self.f(a), self.g(a), self.costs(a), bool(self.ok_a[a]), self.reason_a[a], corr
-        )
-
-
-def chunk_plan(n_items: int, chunk_size: int, n_workers: int) -> list[tuple[int, int]]:
-    """[start, stop) ranges of at most chunk_size items that shrink toward the end.
-
-    Guided scheduling: with several workers each chunk is at most 1 / (2 workers) of what is
-    left, so the last chunks are small and the workers, taking chunks as they free up, finish
-    close together (148 demos in chunks of 16 on 2 workers left one worker idle for up to 16
-    demos). A chunk's results do not depend on the chunk it is in (tested), only speed does.
-    """
-    plan: list[tuple[int, int]] = []
-    start = 0
-    while start < n_items:
-        left = n_items - start
-        size = min(chunk_size, left if n_workers <= 1 else -(-left // (2 * n_workers)))
-        plan.append((start, start + size))
-        start += size
-    return plan
-
-
-def run_chunks(
-    demo: CloudSide,
-    scene: CloudSide,
-    params: RegistrationParams,
-    *,
-    chunk_size: int,
-    n_workers: int,
-    keep_corr: bool,
-    timings: dict[str, float] | None = None,
-    pool: Executor | None = None,
-    first: FirstIteration | None = None,
-) -> ScanResult:
-    """Registers the scene against every demo, in chunks (independent batches) over workers.
-
-    `pool`: an executor with n_workers threads to reuse (LibraryRegistrar keeps one); without
-    it a pool is started and stopped for this call (~0.7 ms). `first`: demos whose first
-    iteration ran early (`first_iteration_batch`) resume from it.
-    """
-    n_demos = len(demo)
-    demo.cast(np.dtype(params.dtype))  # convert once, before any worker thread reads it
-    inputs = kernel_inputs(scene, params)
-    good = np.flatnonzero(demo.ok_a)
-    chunks = [good[a:b] for a, b in chunk_plan(len(good), chunk_size, n_workers)]
-
-    def work(idx: np.ndarray) -> _ChunkOut:
-        # A demo whose fit overflows is detected below and reported; no warning spam for it.
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return rpm_batch(
-                demo, idx, scene, params, keep_corr, timings, inputs=inputs, first=first
-            )
-
-    if n_workers > 1 and len(chunks) > 1:
-        # The kernel releases the GIL, so threads share one copy of the library.
-        if pool is not None:
-            outs = list(pool.map(work, chunks))
-        else:
-            with ThreadPoolExecutor(n_workers) as own_pool:
-                outs = list(own_pool.map(work, chunks))
-    else:
-        outs = [work(idx) for idx in chunks]
-    n_max = demo.x_an3.shape[1]
-    m = int(scene.n_a[0])
-    costs = np.full((n_demos, len(COST_NAMES)), np.inf)
-    e_f = np.zeros((n_demos, n_max + 4, 3))
-    e_g = np.zeros((n_demos, m + 4, 3))
-    corr = np.zeros((n_demos, n_max, m)) if keep_corr else None
-    ok = demo.ok_a.copy()
-    reason = list(demo.reason_a)
-    with np.errstate(invalid="ignore"):
-        for idx, out in zip(chunks, outs, strict=True):
-            k = out.e_f.shape[1]
-            costs[idx] = out.costs_bc
-            e_f[idx, :k] = out.e_f
-            e_g[idx] = out.e_g
-            if corr is not None and out.corr_bnm is not None:
-                corr[idx, : out.corr_bnm.shape[1]] = out.corr_bnm
-            for b, why in out.failed.items():
-                ok[idx[b]] = False
-                reason[idx[b]] = why
-    finite = np.all(np.isfinite(costs), axis=1) & np.all(np.isfinite(e_f), axis=(1, 2))
-    finite &= np.all(np.isfinite(e_g), axis=(1, 2))
-    for a in np.flatnonzero(ok & ~finite):
-        ok[a] = False
-        reason[a] = "registration produced non-finite values"
-    costs[~ok] = np.inf
-    return ScanResult(params, costs, ok, tuple(reason), e_f, e_g, corr, demo, scene)
-
-
-def scene_side(
-    scene_cloud: np.ndarray, params: RegistrationParams, *, cleaned: bool = False
-) -> CloudSide:
-    """Scene side: a bad scene cloud raises (it concerns every demo).
-
-    cleaned: the cloud already went through `clean_cloud` (it is not cleaned twice).
-    """
-    cloud = scene_cloud if cleaned else clean_cloud(scene_cloud, "scene cloud", params.max_points)
-    side = _build_side([cloud], [""], params)
-    if not side.ok_a[0]:
-        raise SolverError(f"scene cloud: {side.reason_a[0]}")
-    return side
+# ----------------------------------------------------------------------------- one pair
 
 
 def register(
@@ -683,18 +381,7 @@ def register(
     return register_sides(demo, scene_side(scene_cloud, params), params)
 
 
-def one_demo_side(demo_cloud: np.ndarray, params: RegistrationParams) -> CloudSide:
-    """The factorised side of one demo cloud (what `register` builds); raises if unusable."""
-    demo = demo_side([clean_cloud(demo_cloud, "demo cloud", params.max_points)], params)
-    if not demo.ok_a[0]:
-        raise SolverError(f"demo cloud: {demo.reason_a[0]}")
-    return demo
-
-
 def register_sides(demo: CloudSide, scene: CloudSide, params: RegistrationParams) -> Registration:
     """`register` on sides already factorised (`one_demo_side`, `scene_side`): same result."""
     result = run_chunks(demo, scene, params, chunk_size=1, n_workers=1, keep_corr=True)
     return result.registration(0)
-
-
-# ----------------------------------------------------------------------------- library scans

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from knotlab.core.selection.qmodel import QModel
-from knotlab.core.world.stages import Stage
+from knotlab.core.tasks.overhand.stages import Stage
 
 
 @dataclass(frozen=True)

@@ -3,28 +3,30 @@
 Shape suffixes: a = demos (actions), d = features, p = points, k = demo steps (phases).
 
 For each demo a, from the bidirectional registration of its cloud onto the scene:
-- c1 = map_fwd + map_bwd (mapping error), c2 = bend_f, c3 = bend_g (lfd_facts section 4);
+- c1 = map_fwd + map_bwd (mapping error), c2 = bend_f, c3 = bend_g (docs/reference/learning.md);
 - q(c1, c2, c3): the six products c_i c_j, i <= j (the original's quadratic features);
 - grasp_dist: metres from each warped grasp point of demo a to the nearest scene point (max over
-  the segment's grasps). The original's version of this feature was 0 by a loader bug (facts
-  section 14.7); a transferred grasp that lands off the rope is a misgrasp, so this predicts one;
+  the segment's grasps). The original's version of this feature was 0 by a loader bug
+  (docs/reference/original_system.md, "Known bugs", 7); a transferred grasp that lands off the
+  rope is a misgrasp, so this predicts one;
 - phase_k: soft "which demo step does this state look like" (k = 0, 1, 2): the softmax over demos
   of the relative NN cost, summed per demo step. The same for every action (the landmark idea of
-  facts section 4, with the library's own clouds as landmarks): it only enters the Bellman and
-  dead-end rows, where it lets the value depend on progress;
+  docs/reference/learning.md, with the library's own clouds as landmarks): it only enters the
+  Bellman and dead-end rows, where it lets the value depend on progress;
 - phase_match: phase_k at demo a's own step k(a): does this demo belong to the state's phase?;
-- landmark[l]: with landmarks (core/landmarks.py: labelled and dead-end training states, as the
-  original's 50 + 20), the same softmax over the landmarks' registration costs to the state. The
-  same for every action, so it only shapes the value: it lets V(s') tell a state the expert went
-  on from apart from a dead end, which is what lookahead compares;
+- landmark[l]: with landmarks (core/selection/landmarks.py: labelled and dead-end training
+  states, as the original's 50 + 20), the same softmax over the landmarks' registration costs
+  to the state. The same for every action, so it only shapes the value: it lets V(s') tell a
+  state the expert went on from apart from a dead end, which is what lookahead compares;
 - e_a: a one-hot of the demo (a per-demo prior: some demos transfer far better than others).
-- with ``rank_features`` (issue 12, item 4): where demo a stands among the state's demos by
+- with ``rank_features``: where demo a stands among the state's demos by
   registration cost: nn_rel = cost(a) / min cost - 1 (scale-free), one-hots for ranks 0, 1 and 2,
   and min(rank, 10) / 10. The expert was shown candidates in cost order and took the first that
-  worked (facts section 11), so the rank is what the labels are made of; a linear Q on the raw
-  costs plus 148 per-demo offsets cannot express "the cheapest one" within a state.
-Not repeated from the original (facts section 14): positive-exponent gram features, indicators
-that are never cleared, c2-only "bend" features labelled c2 + c3.
+  worked (docs/reference/original_system.md, "Labelling protocol"), so the rank is what the
+  labels are made of; a linear Q on the raw costs plus 148 per-demo offsets cannot express
+  "the cheapest one" within a state.
+Not repeated from the original (docs/reference/original_system.md, "Known bugs"): positive-exponent
+gram features, indicators that are never cleared, c2-only "bend" features labelled c2 + c3.
 
 Demos whose registration failed get the worst finite value of each cost column (their Q is
 masked by the policies anyway, via ``scan.ok_a``), so training rows stay finite.
@@ -43,7 +45,9 @@ from knotlab.core.arrays import cloud_digest
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
+from knotlab.core.selection.compatibility import check_feature_names, check_observation
 from knotlab.core.selection.landmarks import Landmarks
+from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.observation import ObservationModel, observe
 
 FEATURE_SET = "knotlab-features-v1"
@@ -226,32 +230,24 @@ class LibraryFeaturizer:
 
     @classmethod
     def for_model(
-        cls, library: DemoLibrary, model, *, registrar: LibraryRegistrar | None = None
+        cls,
+        library: DemoLibrary,
+        model: QModel,
+        *,
+        registrar: LibraryRegistrar | None = None,
+        params: RegistrationParams = SCAN,
     ) -> LibraryFeaturizer:
         """The featurizer a QModel was trained with (its landmarks), checked against its spec."""
         featurizer = cls(
             library,
             registrar=registrar,
+            params=params,
             phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
             landmarks=getattr(model, "landmarks", None),
             rank_features=bool(model.feature_spec.get("rank_features", False)),
         )
-        model_obs = ObservationModel.parse(
-            model.feature_spec.get("observation_model", ObservationModel.CLOUD.value)
-        )
-        if model_obs is not featurizer.observation:
-            raise InvalidInputError(
-                f"the model was trained on '{model_obs.value}' observations but this library's "
-                f"clouds are '{featurizer.observation.value}': use a library and model made with "
-                "the same observation model"
-            )
-        theirs = model.feature_spec.get("names")
-        if theirs is not None and list(theirs) != list(featurizer.feature_spec.names):
-            raise InvalidInputError(
-                "the model's features do not match this library and code "
-                f"({len(theirs)} model columns, {len(featurizer.feature_spec.names)} here): "
-                "retrain it with `knotlab train`"
-            )
+        check_observation(model, featurizer.observation)
+        check_feature_names(model, featurizer.feature_spec.names)
         return featurizer
 
     @property

@@ -1,10 +1,10 @@
 """Landmark states: a fixed sample of labelled and dead-end clouds that state features refer to.
 
-The original sampled 20 failure states and 50 labelled states at random (lfd_facts section 4)
-and described a state by its registration cost to each. Those costs, turned into a softmax, let
-the value V(s) = max_a Q(s, a) tell "looks like a state the expert went on from" apart from
-"looks like a dead end", which the Bellman and dead-end rows of the QP can then learn; the greedy
-ranking within a state is unaffected (the columns are the same for every action).
+The original sampled 20 failure states and 50 labelled states at random (docs/reference/learning.md,
+"Landmarks") and described a state by its registration cost to each. Those costs, turned into a
+softmax, let the value V(s) = max_a Q(s, a) tell "looks like a state the expert went on from" apart
+from "looks like a dead end", which the Bellman and dead-end rows of the QP can then learn; the
+greedy ranking within a state is unaffected (the columns are the same for every action).
 Landmarks come from *training* executions only and travel inside the model file.
 Shape suffixes: n = points, l = landmarks.
 """

@@ -3,7 +3,7 @@
 Shape suffixes: a = actions (library demos), d = feature dimension, s = labelled expert states.
 
 Q(s, a) = w . phi(s, a) + w0 with phi standardised column-wise (indicator columns left as 0/1).
-The QP (lfd_facts section 5.3, with the changes listed below):
+The QP (docs/reference/learning.md, "The QP", with the changes listed below):
 
     minimise   ||w||^2 + C sum_s xi_s + D (sum_k |e_k| + sum_f yd_f)
     subject to Q(s, a*) >= Q(s, a) + kappa * m(a*, a) - xi_s       every expert state s, a != a*

@@ -256,7 +256,7 @@ class QModelSearch:
     margin_scale: float = 1.0
     landmarks: tuple[int, int] = (50, 20)  # labelled, dead-end landmark states (0, 0 = none)
     select: SelectBy = SelectBy.TOP1
-    rank_features: bool = False  # the cost-rank columns of `LibraryFeaturizer` (issue 12)
+    rank_features: bool = False  # the cost-rank columns of `LibraryFeaturizer`
     # Tried candidates (`core.selection.tries`) by (execution id, step): margin rows follow them
     tries: dict | None = field(default=None, repr=False)
     validation_fraction: float = 0.2

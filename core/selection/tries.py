@@ -1,4 +1,4 @@
-"""Tried candidates: one-step outcomes of a labelled state's cheapest demos (issue 12's lever).
+"""Tried candidates: one-step outcomes of a labelled state's cheapest demos (docs/results.md).
 
 The oracle's label says "the first demo in registration-cost order that still leads to a knot":
 the demos before it failed and the ones after it were never tried, so a max-margin row asks the

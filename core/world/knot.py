@@ -1,6 +1,6 @@
 """Is the rope tied in an overhand knot? Decided by a knot invariant, not a pattern match.
 
-Method (shared/reference/rope_sim_notes.md, section 4):
+Method (docs/reference/knot_and_stages.md, "Knot test"):
 1. Close the open rope far above (and, separately, far below) everything: from each end straight
    up to height h, joined by a straight chord at height h. Everything at height h passes over (or
    under) the whole rope, so any such path gives the same knot; a chord is the simplest one.

@@ -1,15 +1,15 @@
 """What the robot perceives of the rope: the point cloud that registration matches.
 
-Two observation models, named so that every library, model and results file can record which one
+Three observation models, named so that every library, model and results file can record which one
 made its clouds (mixing them is refused where they meet: `LibraryFeaturizer.for_model`, the bench):
 
 - ``centreline`` (default): the rope state estimate, i.e. its K simulator nodes plus the K - 1
   segment midpoints (81 points for the 40-link rope). It stands in for a rope tracker, as the
   original system's pipeline was a Kinect cloud of a rope that a tracker could follow. Measured on
-  training starts (issue 12): with it, nearest-neighbour transfer succeeds about 5x as often as
+  training starts: with it, nearest-neighbour transfer succeeds about 5x as often as
   with the surface cloud, mostly because step 2 and step 3 grasps land on the right node.
-- ``cloud``: `RopeWorld.observe()`, the voxel-downsampled (2.5 cm) upper surface a camera above
-  the table sees, as the original system's ray-cast Kinect cloud.
+- ``cloud``: `surface_cloud` (what `RopeWorld.observe()` returns), the voxel-downsampled (2.5 cm)
+  upper surface a camera above the table sees, as the original system's ray-cast Kinect cloud.
 - ``tracked``: a centreline *estimated from the camera cloud*, as a rope tracker would report it:
   the tracker's prior is the rope's node chain (an idealisation: it was following the rope
   without drift), every centreline point
@@ -21,18 +21,23 @@ made its clouds (mixing them is refused where they meet: `LibraryFeaturizer.for_
 Noise: N(0, noise^2) per coordinate from a Generator seeded with ``seed`` (same seed, same cloud).
 The tracker's own noise is seeded the same way; without a seed it is seeded by the rope state's
 bytes, so the same state always gives the same estimate (lookahead and the oracle rely on it).
-Shape suffixes: k = rope nodes, n = cloud points.
+Shape suffixes: k = rope nodes, l = rope links (capsules), n = cloud points, 4 = xyzw quaternion.
 """
 
 from __future__ import annotations
 
 import zlib
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from knotlab.core.arrays import points_n3
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.voxels import voxel_groups
+
+if TYPE_CHECKING:  # the simulator imports this module (and pybullet): only for the checker
+    from knotlab.core.world.sim import SimSnapshot
 
 
 class ObservationModel(StrEnum):
@@ -64,6 +69,68 @@ DEFAULT_OBSERVATION = ObservationModel.CENTRELINE
 TRACKER_NOISE = 0.003  # m, per-coordinate sensor noise of the tracker's camera cloud
 TRACKER_RADIUS = 0.02  # m, visible points within this xy distance pull a centreline point
 _TRACKER_VOXEL = 0.01  # m
+
+
+def _quat_to_axes(quats_l4: np.ndarray) -> np.ndarray:
+    """Rotation matrices (L, 3, 3) from xyzw quaternions."""
+    x, y, z, w = (quats_l4[:, i] for i in range(4))
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
+def surface_cloud(
+    state: SimSnapshot,
+    *,
+    noise: float = 0.0,
+    seed: int | None = None,
+    max_points: int = 150,
+    voxel: float = 0.025,
+) -> np.ndarray:
+    """Point cloud (N <= max_points, 3) on the upper surface of the rope in ``state``.
+
+    Samples each capsule's cylinder where its normal faces up (what a camera above sees),
+    keeps per voxel the sample nearest to the voxel's mean (so points stay ON the surface),
+    then adds N(0, noise^2) per coordinate from a Generator seeded with `seed`.
+    """
+    if not (np.isfinite(noise) and noise >= 0):
+        raise InvalidInputError(f"observe noise must be finite and >= 0, got {noise}")
+    if max_points < 1 or not voxel > 0:
+        raise InvalidInputError("observe needs max_points >= 1 and voxel > 0")
+    prm = state.params
+    rot_l33 = _quat_to_axes(state.quaternions_l4)
+    u_l3, v_l3, a_l3 = rot_l33[:, :, 0], rot_l33[:, :, 1], rot_l33[:, :, 2]
+    along_s = np.linspace(-0.5, 0.5, 5, endpoint=False) * prm.link_length
+    phi_r = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+    normal_lr3 = (
+        np.cos(phi_r)[None, :, None] * u_l3[:, None, :]
+        + np.sin(phi_r)[None, :, None] * v_l3[:, None, :]
+    )
+    pts = (
+        state.positions_l3[:, None, None, :]
+        + along_s[None, :, None, None] * a_l3[:, None, None, :]
+        + prm.radius * normal_lr3[:, None, :, :]
+    )
+    visible = np.broadcast_to(normal_lr3[:, None, :, 2] >= -0.2, pts.shape[:3])
+    pts = pts[visible & np.isfinite(pts).all(axis=-1)]
+    if pts.shape[0] == 0:
+        return np.zeros((0, 3))
+    inv, _, mean_v3 = voxel_groups(pts, voxel)
+    dist = np.linalg.norm(pts - mean_v3[inv], axis=1)
+    order = np.lexsort((dist, inv))  # by voxel, nearest first
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = inv[order][1:] != inv[order][:-1]
+    cloud = pts[order[first]]
+    if cloud.shape[0] > max_points:
+        cloud = cloud[np.linspace(0, cloud.shape[0] - 1, max_points).round().astype(int)]
+    if noise > 0:
+        cloud = cloud + np.random.default_rng(seed).normal(0.0, noise, size=cloud.shape)
+    return cloud
 
 
 def centreline_points(nodes_k3: np.ndarray) -> np.ndarray:

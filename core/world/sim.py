@@ -21,14 +21,13 @@ import math
 import time
 import weakref
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.failures import FailureKind
-from knotlab.core.voxels import voxel_groups
 from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
+from knotlab.core.world.observation import surface_cloud
 from knotlab.core.world.rope import as_nodes, resample_by_arc_length, rope_length
 from knotlab.core.world.trajectory import GRIPPERS, GripperTrajectory
 
@@ -193,19 +192,6 @@ class SimSnapshot:
         )
 
 
-def _quat_to_axes(quats_l4: np.ndarray) -> np.ndarray:
-    """Rotation matrices (L, 3, 3) from xyzw quaternions."""
-    x, y, z, w = (quats_l4[:, i] for i in range(4))
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-
-
 def _quat_z_to(dirs_l3: np.ndarray) -> np.ndarray:
     """Shortest-arc xyzw quaternions rotating +z onto each unit direction."""
     cos = np.clip(dirs_l3[:, 2], -1.0, 1.0)
@@ -218,7 +204,7 @@ def _quat_z_to(dirs_l3: np.ndarray) -> np.ndarray:
 
 
 def _quat_z_axes(quats_l4: np.ndarray) -> np.ndarray:
-    """The third column of `_quat_to_axes` (each link's axis), (L, 3), by the same arithmetic.
+    """The third column of `observation._quat_to_axes` (each link's axis), (L, 3), same arithmetic.
 
     The health check runs every few simulator steps and needs only the axes; building the full
     matrices there took a sixth of an execution's wall time.
@@ -712,7 +698,7 @@ class RopeWorld:
             p.removeConstraint(held[g][1], physicsClientId=self._client)
             held[g] = None
 
-    # ------------------------------------------------------------------ sensing and drawing
+    # ------------------------------------------------------------------ sensing
     def observe(
         self,
         noise: float = 0.0,
@@ -720,108 +706,7 @@ class RopeWorld:
         max_points: int = 150,
         voxel: float = 0.025,
     ) -> np.ndarray:
-        """Point cloud (N <= max_points, 3) on the rope's upper surface, voxel-downsampled.
-
-        Samples each capsule's cylinder where its normal faces up (what a camera above sees),
-        keeps per voxel the sample nearest to the voxel's mean (so points stay ON the surface),
-        then adds N(0, noise^2) per coordinate from a Generator seeded with `seed`.
-        """
-        if not (np.isfinite(noise) and noise >= 0):
-            raise InvalidInputError(f"observe noise must be finite and >= 0, got {noise}")
-        if max_points < 1 or not voxel > 0:
-            raise InvalidInputError("observe needs max_points >= 1 and voxel > 0")
-        state = self._state()
-        prm = self.params
-        rot_l33 = _quat_to_axes(state.quaternions_l4)
-        u_l3, v_l3, a_l3 = rot_l33[:, :, 0], rot_l33[:, :, 1], rot_l33[:, :, 2]
-        along_s = np.linspace(-0.5, 0.5, 5, endpoint=False) * prm.link_length
-        phi_r = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
-        normal_lr3 = (
-            np.cos(phi_r)[None, :, None] * u_l3[:, None, :]
-            + np.sin(phi_r)[None, :, None] * v_l3[:, None, :]
+        """Point cloud (N <= max_points, 3) on the rope's upper surface (`surface_cloud`)."""
+        return surface_cloud(
+            self._state(), noise=noise, seed=seed, max_points=max_points, voxel=voxel
         )
-        pts = (
-            state.positions_l3[:, None, None, :]
-            + along_s[None, :, None, None] * a_l3[:, None, None, :]
-            + prm.radius * normal_lr3[:, None, :, :]
-        )
-        visible = np.broadcast_to(normal_lr3[:, None, :, 2] >= -0.2, pts.shape[:3])
-        pts = pts[visible & np.isfinite(pts).all(axis=-1)]
-        if pts.shape[0] == 0:
-            return np.zeros((0, 3))
-        inv, _, mean_v3 = voxel_groups(pts, voxel)
-        dist = np.linalg.norm(pts - mean_v3[inv], axis=1)
-        order = np.lexsort((dist, inv))  # by voxel, nearest first
-        first = np.ones(order.size, dtype=bool)
-        first[1:] = inv[order][1:] != inv[order][:-1]
-        cloud = pts[order[first]]
-        if cloud.shape[0] > max_points:
-            cloud = cloud[np.linspace(0, cloud.shape[0] - 1, max_points).round().astype(int)]
-        if noise > 0:
-            cloud = cloud + np.random.default_rng(seed).normal(0.0, noise, size=cloud.shape)
-        return cloud
-
-    def render_topdown(self, path: str | Path, size: int = 800, title: str | None = None) -> Path:
-        """Write a top-down PNG of the rope (left) and a close-up of where it crosses (right).
-
-        Segments are drawn from lowest to highest with a white rim, so the strand on top at a
-        crossing visibly covers the one below.
-        """
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        nodes = self.rope_nodes()
-        xy = nodes[:, :2]
-        # Close-up: nodes within 3 cm (in xy) of a node at least 3 links away along the rope.
-        gap_kk = np.linalg.norm(xy[:, None] - xy[None], axis=2)
-        far_kk = np.abs(np.arange(len(xy))[:, None] - np.arange(len(xy))[None]) >= 3
-        near = (gap_kk < 0.03) & far_kk
-        busy = xy[near.any(axis=1)]
-        panels = [(xy.min(axis=0), xy.max(axis=0), 0.08)]
-        if len(busy):
-            panels.append((busy.min(axis=0), busy.max(axis=0), 0.04))
-        dpi = 100
-        width_in = size / dpi
-        fig = Figure(figsize=(width_in * len(panels), width_in), dpi=dpi)
-        FigureCanvasAgg(fig)
-        top = 0.9 if title else 0.98
-        for p_i, (lo, hi, margin) in enumerate(panels):
-            ax = fig.add_axes((p_i / len(panels) + 0.01, 0.02, 1 / len(panels) - 0.02, top - 0.02))
-            centre, span = 0.5 * (lo + hi), float((hi - lo).max()) + 2 * margin
-            self._draw_rope(ax, nodes, centre, span, size * (top - 0.02))
-            if p_i == 1:
-                ax.set_title("close-up of the crossings", fontsize=10)
-        if title:
-            fig.suptitle(title)
-        out = Path(path)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=dpi)
-        return out
-
-    def _draw_rope(self, ax, nodes_k3: np.ndarray, centre_2, span: float, px: float) -> None:
-        import matplotlib
-
-        ax.set_facecolor("#e9e4d8")  # the table
-        ax.set_xlim(centre_2[0] - span / 2, centre_2[0] + span / 2)
-        ax.set_ylim(centre_2[1] - span / 2, centre_2[1] + span / 2)
-        ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
-        width = 2 * self.params.radius * px / 100 * 72 / span  # rope diameter in points
-        n = len(nodes_k3) - 1
-        colours = matplotlib.colormaps["viridis"](np.linspace(0.1, 0.9, n))
-        rim = max(1.5, 0.25 * width)
-        mid_m3 = 0.5 * (nodes_k3[:-1] + nodes_k3[1:])
-        # A white rim only where a segment lies over another one: elsewhere rims would show
-        # as white ticks at every joint.
-        close = np.linalg.norm(mid_m3[:, None, :2] - mid_m3[None, :, :2], axis=2) < 0.03
-        apart = np.abs(np.arange(n)[:, None] - np.arange(n)[None]) >= 2
-        above = mid_m3[:, None, 2] > mid_m3[None, :, 2] + 0.005
-        on_top = (close & apart & above).any(axis=1)
-        for i in np.argsort(mid_m3[:, 2], kind="stable"):
-            seg = nodes_k3[i : i + 2]
-            if on_top[i]:
-                ax.plot(seg[:, 0], seg[:, 1], color="white", lw=width + rim, solid_capstyle="round")
-            ax.plot(seg[:, 0], seg[:, 1], color=colours[i], lw=width, solid_capstyle="round")
-        ax.annotate("A", nodes_k3[0, :2], xytext=(-14, -14), textcoords="offset points")
-        ax.annotate("B", nodes_k3[-1, :2], xytext=(6, 6), textcoords="offset points")

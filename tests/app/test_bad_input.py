@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from knotlab.app import cli, defaults
+from knotlab.app import cli, defaults, options
 from knotlab.core.demos.tasks import RopeTask, TaskSet
 from knotlab.core.world.rope import straight_rope
 
@@ -59,8 +59,9 @@ def _snapshot(*folders: Path) -> dict[str, str]:
 GEN = ["demos", "generate", "--out", "lib.npz", "--workers", "1", "--no-progress"]
 TASKS_GEN = ["tasks", "generate", "--seed", "0", "--out-dir", "out", "--no-progress"]
 TRAIN = ["train", "--labels", "none.jsonl", "--out", "m.npz", "--no-progress"]
-BENCH = ["bench", "--out", "res", "--no-progress", "--workers", "1"]
+BENCH = ["bench", "--out-dir", "res", "--no-progress", "--workers", "1"]
 LABEL = ["label", "--oracle", "--no-progress", "--workers", "1"]
+PLAYBACK = ["playback", "res:nn:t-0000", "--out", "x.gif"]
 
 CASES = [
     # --db: unknown dialects, missing drivers, not URLs, missing or foreign files
@@ -107,10 +108,11 @@ CASES = [
     (["tie", "--out", "knot.txt"], "expected a .png file name"),
     ([*TRAIN[:3], "--out", "notes.txt/m.npz"], "is a file, not a folder"),
     ([*TRAIN[:3], "--out", MODEL], "would replace a shipped or committed model"),
-    (["bench", "--out", "notes.txt/res"], "is a file, not a folder"),
-    (["bench", "--out", "notes.txt"], "is a file; expected a folder"),
+    (["bench", "--out-dir", "notes.txt/res"], "is a file, not a folder"),
+    (["bench", "--out-dir", "notes.txt"], "is a file; expected a folder"),
+    (["bench", "--out", "notes.txt"], "--out-dir notes.txt is a file"),  # the old spelling
     ([*TASKS_GEN[:4], "--out-dir", "notes.txt"], "is a file; expected a folder"),
-    ([*TASKS_GEN[:4], "--out-dir", str(defaults.STATIC_DIR)], "would replace a shipped"),
+    ([*TASKS_GEN[:4], "--out-dir", str(defaults.LIBRARY_PATH.parent)], "would replace a shipped"),
     ([*TASKS_GEN, "--level", "../escape"], "argument --level: expected a plain name"),
     ([*TASKS_GEN, "--level", "a/b"], "argument --level"),
     ([*TASKS_GEN, "--train", "0", "--test", "0"], "nothing to generate"),
@@ -134,9 +136,29 @@ CASES = [
     ([*BENCH, "--noise", "-1"], "argument --noise"),
     ([*BENCH, "--noise", "nan"], "argument --noise"),
     ([*BENCH, "--max-steps", "0"], "argument --max-steps"),
-    ([*LABEL, "--limit", "-1"], "argument --limit: expected an integer >= 0"),
-    ([*LABEL, "--candidates", "0"], "argument --candidates"),
+    ([*BENCH, "--policies", "la99x99"], "argument --policies: la99x99: lookahead depth must"),
+    ([*BENCH, "--policies", "la2x51"], "width 1-50, got depth 2, width 51"),
+    ([*BENCH, "--policies", "la6x1"], "argument --policies"),
+    ([*BENCH, "--policies", ","], "argument --policies: expected comma-separated"),
+    ([*LABEL, "--tasks", "0"], "argument --tasks: expected an integer >= 1"),
+    ([*LABEL, "--tasks", "train"], "argument --tasks: expected an integer"),  # now --split
+    ([*LABEL, "--split", "dev"], "argument --split: invalid choice"),
+    ([*LABEL, "--split", "test"], "'test' task set"),
+    ([*LABEL, "--top", "0"], "argument --top"),
+    ([*LABEL, "--level", "extreme"], "--level extreme: task 'overhand' has no such level"),
+    ([*LABEL, "--task", "granny"], "argument --task: unknown task 'granny'; known tasks:"),
     ([*LABEL, "--sim-budget", "nan"], "argument --sim-budget: expected an integer"),
+    ([*PLAYBACK, "--size", "0"], "argument --size: expected an integer from 64 to 2048, got '0'"),
+    ([*PLAYBACK, "--size", "big"], "argument --size: expected an integer, got 'big'"),
+    ([*PLAYBACK, "--fps", "0"], "argument --fps: expected an integer from 1 to 60"),
+    ([*PLAYBACK, "--fps", "12.5"], "argument --fps"),
+    ([*PLAYBACK, "--speed", "nan"], "argument --speed"),
+    ([*PLAYBACK, "--speed", "0"], "argument --speed"),
+    (["suggest", "--seed", "-1"], "argument --seed: expected an integer >= 0"),
+    (["suggest", "--limit", "0"], "argument --limit: expected an integer >= 1"),
+    (["suggest", "--db", "sqlite:///x.db", "--task-set", "t.npz"], "give --db or --task-set"),
+    (["app", "--top", "10"], "argument --top: expected an integer from 1 to 9"),
+    (["app", "--top-k", "0"], "argument --top-k: expected an integer from 1 to 9"),
     # inputs of the long-running commands, refused before they start
     (TRAIN, "none.jsonl: labels file not found"),
     ([*TRAIN, "--library", "corrupt.npz"], "cannot read demo library file"),
@@ -144,7 +166,7 @@ CASES = [
     ([*BENCH, "--library", "none.npz"], "demo library file not found"),
     ([*BENCH, "--task-set", "corrupt.npz"], "cannot read task set file"),
     ([*BENCH, "--task-set", "small_rope.npz"], "ropes have 11 nodes"),
-    ([*BENCH, "--policies", "nn,bogus"], "bogus"),
+    ([*BENCH, "--policies", "nn,bogus"], "argument --policies: unknown policy 'bogus'"),
     ([*BENCH, "--policies", "greedy", "--model", "none.npz"], "need a trained model"),
     ([*LABEL, "--task-set", "none.npz"], "task set file not found"),
     ([*LABEL, "--task-file", "long_rope.npz"], "rope arc length"),  # the old spelling
@@ -165,7 +187,7 @@ def _id(case) -> str:
 def test_bad_input_fails_in_one_line_with_exit_code_2_and_writes_nothing(
     workdir: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
 ) -> None:
-    before = _snapshot(workdir, defaults.STATIC_DIR)
+    before = _snapshot(workdir, defaults.STATIC_DIR, defaults.LIBRARY_PATH.parent)
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     lines = err.splitlines()
@@ -173,7 +195,7 @@ def test_bad_input_fails_in_one_line_with_exit_code_2_and_writes_nothing(
     assert "Traceback" not in err
     assert message in lines[0], lines[0]
     assert ": error: " in lines[0]
-    assert _snapshot(workdir, defaults.STATIC_DIR) == before
+    assert _snapshot(workdir, defaults.STATIC_DIR, defaults.LIBRARY_PATH.parent) == before
 
 
 def _knotlab(*argv: str, cwd: Path, **env: str) -> subprocess.CompletedProcess[str]:
@@ -256,14 +278,12 @@ def test_an_interrupted_command_says_so_in_one_line(
     assert capsys.readouterr().err == "knotlab model info: interrupted\n"
 
 
-def test_version_is_the_installed_one(capsys: pytest.CaptureFixture[str]) -> None:
-    from importlib.metadata import version
-
-    from knotlab.app import __version__
+def test_version_is_the_packages_one(capsys: pytest.CaptureFixture[str]) -> None:
+    from knotlab import __version__
 
     assert cli.main(["--version"]) == 0
-    assert capsys.readouterr().out == f"knotlab {version('knotlab')}\n"
-    assert cli.version() in (version("knotlab"), __version__)
+    assert capsys.readouterr().out == f"knotlab {__version__}\n"
+    assert cli.version() == __version__
 
 
 @pytest.mark.parametrize(
@@ -281,16 +301,26 @@ def test_every_command_with_a_progress_bar_takes_no_progress(command: str) -> No
     assert args.no_progress is True
 
 
-def test_one_flag_names_a_task_set_file_and_the_old_spelling_still_works() -> None:
+def test_one_flag_names_a_task_set_file_and_the_old_spellings_still_work() -> None:
     parser = cli.build_parser()
-    for command in ("label --oracle", "bench --out r"):
-        for flag in ("--task-set", "--task-file"):
+    for command in (
+        "label --oracle",
+        "bench --out-dir r",
+        "suggest",
+        "playback r:nn:t --out x.gif",
+    ):
+        for flag in ("--task-set", "--task-file", "--tasks-file"):
             args = parser.parse_args([*command.split(), flag, "t.npz"])
             assert args.task_set == "t.npz"
+        sub = parser.parse_args(command.split())
+        assert sub.task_set is None
     assert "--task-file" not in parser.format_help()
 
 
 def test_numbers_are_read_exactly(capsys: pytest.CaptureFixture[str]) -> None:
     args = cli.build_parser().parse_args([*TASKS_GEN, "--rho", "0.02", "--train", "0"])
-    assert args.rho == 0.02 and args.train == 0 and args.level == "main"
+    assert args.rho == 0.02 and args.train == 0
     assert np.isfinite(args.rho)
+    # --level is the task's first level unless given
+    assert args.level is None and options.resolve_level(args, shipped=False) == "main"
+    assert args.level == "main"

@@ -16,11 +16,17 @@ from knotlab.app.cli import build_parser
 
 
 def test_app_defaults_are_loopback_port_8080_and_five_candidates():
+    from knotlab.app.options import resolve_level
+
     args = build_parser().parse_args(["app"])
-    assert (args.host, args.port, args.top_k, args.level) == ("127.0.0.1", 8080, 5, "main")
+    assert (args.host, args.port, args.top, args.task) == ("127.0.0.1", 8080, 5, "overhand")
+    assert resolve_level(args) == "main"
+    assert build_parser().parse_args(["app", "--top-k", "3"]).top == 3  # the README's spelling
 
 
-@pytest.mark.parametrize("flag", [["--top-k", "0"], ["--top-k", "10"], ["--port", "-1"]])
+@pytest.mark.parametrize(
+    "flag", [["--top", "0"], ["--top", "10"], ["--top-k", "10"], ["--port", "-1"]]
+)
 def test_app_rejects_bad_numbers(flag, capsys):
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(["app", *flag])

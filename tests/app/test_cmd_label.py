@@ -17,7 +17,7 @@ def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
     lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
     url = f"sqlite:///{tmp_path / 'labels.db'}"
     args = ["label", "--oracle", "--task-set", str(tasks_path), "--library", str(lib_path)]
-    args += ["--db", url, "--limit", "1", "--sim-budget", "3", "--workers", "1", "--json"]
+    args += ["--db", url, "--tasks", "1", "--sim-budget", "3", "--workers", "1", "--json"]
     assert cli.main(args) == 0
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert first["tasks"] == 1 and first["simulations"] <= 3
@@ -36,10 +36,11 @@ def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--candidates", "0"], "argument --candidates: expected an integer >= 1, got '0'"),
-        (["--candidates", "-3"], "argument --candidates: expected an integer >= 1, got '-3'"),
+        (["--top", "0"], "argument --top: expected an integer >= 1, got '0'"),
+        (["--top", "-3"], "argument --top: expected an integer >= 1, got '-3'"),
         (["--sim-budget", "0"], "argument --sim-budget: expected an integer >= 1"),
-        (["--limit", "-1"], "argument --limit: expected an integer >= 0, got '-1'"),
+        (["--tasks", "0"], "argument --tasks: expected an integer >= 1, got '0'"),
+        (["--tasks", "train"], "argument --tasks: expected an integer, got 'train'"),
     ],
 )
 def test_label_refuses_budgets_that_would_simulate_nothing(tmp_path, capsys, extra, message):
@@ -52,13 +53,23 @@ def test_label_refuses_budgets_that_would_simulate_nothing(tmp_path, capsys, ext
     assert not (tmp_path / "labels.db").exists()  # refused before anything was written
 
 
-def test_label_refuses_a_test_split_and_a_limit_of_zero_labels_nothing(tmp_path, capsys):
+def test_label_refuses_a_test_split(tmp_path, capsys):
     lib_path, test_path = write_mini_files(tmp_path, n_tasks=1, split="test")
     url = f"sqlite:///{tmp_path / 'labels.db'}"
     args = ["label", "--oracle", "--library", str(lib_path), "--db", url, "--workers", "1"]
     assert cli.main([*args, "--task-file", str(test_path)]) == 2
     assert "'test' task set" in capsys.readouterr().err
-    _, train_path = write_mini_files(tmp_path, n_tasks=1, split="train")
-    assert cli.main([*args, "--task-file", str(train_path), "--limit", "0", "--json"]) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["tasks"] == 0 and summary["simulations"] == 0
+    assert cli.main([*args, "--split", "test"]) == 2  # the task's shipped test set
+    assert "'test' task set" in capsys.readouterr().err
+    assert not (tmp_path / "labels.db").exists()
+
+
+def test_label_defaults_are_the_tasks_shipped_files() -> None:
+    from knotlab.app import defaults, options
+
+    args = cli.build_parser().parse_args(["label", "--oracle"])
+    assert (args.task, args.split, args.top, args.tasks) == ("overhand", "train", 10, None)
+    assert options.task_set_file(args, args.split) == defaults.task_set_path("main", "train")
+    assert options.library_file(args) == defaults.library_path("overhand")
+    args = cli.build_parser().parse_args(["label", "--oracle", "--level", "hard"])
+    assert options.task_set_file(args, "train") == defaults.task_set_path("hard", "train")

@@ -4,8 +4,8 @@ Debian's Chromium through Playwright (never `playwright install`). Tests are mar
 and skipped, not failed, when Chromium or Playwright is missing. One app per test module (the
 kernel warm-up and the 300 starts are paid once); every test opens its own browser context, so
 local storage (the labeller's name) and the viser client are fresh unless a test reuses one.
-Set ``KNOTLAB_SCREENSHOTS=DIR`` to keep the screenshots the tests take (the README's come from
-there).
+Set ``KNOTLAB_SCREENSHOTS=DIR`` to keep the screenshots the tests take (the README's and
+docs/app.md's come from there).
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def app_args(db_url: str, **over) -> argparse.Namespace:
         model=None,
         host="127.0.0.1",
         port=0,
-        top_k=5,
+        top=5,
         sim_workers=1,  # one try process: the suite shares two cores with another worker
     )
     args.update(over)

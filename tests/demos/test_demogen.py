@@ -55,9 +55,9 @@ def test_candidate_seeds_differ_across_candidates_and_generation_seeds():
 
 
 def test_shipped_default_library_meets_the_spec():
-    from pathlib import Path
+    from knotlab.app.defaults import library_path
 
-    path = Path(__file__).resolve().parents[2] / "static" / "demos_default.npz"
+    path = library_path()
     lib = DemoLibrary.load(path)
     s = lib.summary()
     assert s["segments"] >= 148 and s["start_states"] >= 50

@@ -7,14 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from knotlab.core.demos.expert import (
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.tasks.overhand.expert import (
     STAGE_CODES,
     ExpertStyle,
     run_expert,
     sample_start_rope,
     sample_style,
 )
-from knotlab.core.errors import InvalidInputError
 from knotlab.core.world.knot import analyse_knot
 from knotlab.core.world.rope import has_xy_self_intersection, rope_length
 from knotlab.core.world.sim import RopeWorld

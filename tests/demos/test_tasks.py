@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knotlab.core.demos.expert import sample_start_rope
 from knotlab.core.demos.tasks import TaskSet, generate_tasks, min_clearance, task_seed
 from knotlab.core.errors import CorruptFileError
+from knotlab.core.tasks.overhand.expert import sample_start_rope
 from knotlab.core.world.rope import has_xy_self_intersection, rope_length
 
 
@@ -73,11 +73,10 @@ def test_file_round_trip_and_corruption(train, tmp_path):
 
 @pytest.mark.parametrize(("level", "rho"), [("main", 0.05), ("hard", 0.10)])
 def test_shipped_task_sets_load_with_disjoint_seeds(level, rho):
-    from pathlib import Path
+    from knotlab.app.defaults import task_set_path
 
-    static = Path(__file__).resolve().parents[2] / "static"
-    train = TaskSet.load(static / f"tasks_{level}_train.npz")
-    test = TaskSet.load(static / f"tasks_{level}_test.npz")
+    train = TaskSet.load(task_set_path(level, "train"))
+    test = TaskSet.load(task_set_path(level, "test"))
     assert (len(train), len(test)) == (300, 500)
     assert train.metadata["rho"] == test.metadata["rho"] == rho
     assert not set(train.seeds().tolist()) & set(test.seeds().tolist())

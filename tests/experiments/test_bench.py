@@ -326,7 +326,7 @@ def test_rerun_with_another_model_or_library_is_refused(first_run, files, tmp_pa
 def test_learned_policy_without_a_model_says_to_train_first(files, tmp_path, capsys, monkeypatch):
     from knotlab.app import defaults
 
-    monkeypatch.setattr(defaults, "MODEL_PATH", tmp_path / "no_model.npz")
+    monkeypatch.setattr(defaults, "model_path", lambda task="overhand": tmp_path / "no_model.npz")
     args = _bench_args(files, tmp_path / "out", policies="nn,greedy")
     i = args.index("--model")
     del args[i : i + 2]

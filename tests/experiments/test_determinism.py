@@ -74,17 +74,17 @@ def test_sharing_simulations_across_policies_changes_no_outcome(files, tmp_path)
 
 
 def test_a_shared_memo_simulates_an_execution_once_for_every_policy(monkeypatch):
+    from knotlab.core.execution import memo
     from knotlab.core.experiments.bench import BenchWorker, EpisodeJob, WorkerSpec
-    from knotlab.core.selection import policies
 
     calls: list[int] = []
-    original = policies.apply_demo
+    original = memo.apply_demo
 
     def counted(world, transferer, cloud, action, *args, **kwargs):
         calls.append(int(action))
         return original(world, transferer, cloud, action, *args, **kwargs)
 
-    monkeypatch.setattr(policies, "apply_demo", counted)
+    monkeypatch.setattr(memo, "apply_demo", counted)
     task = mini_tasks(1, "test")[0]
     jobs = [
         EpisodeJob(name, 0, task.task_id, task.start_nodes_k3, 5, 2, 0.0)

@@ -124,15 +124,14 @@ def test_first_iteration_run_early_resumes_bit_identically(params: RegistrationP
     Forced here (every other demo, uneven clouds, a bad demo skipped); in a 2-worker scan which
     demos run early depends on timing, so the scan itself is checked on its outputs too.
     """
+    from knotlab.core.registration.chunks import run_chunks
     from knotlab.core.registration.params import clean_cloud
     from knotlab.core.registration.rpm import (
         FirstIteration,
         first_iteration_batch,
         first_iteration_inputs,
-        normalise_cloud,
-        run_chunks,
-        scene_side,
     )
+    from knotlab.core.registration.sides import normalise_cloud, scene_side
 
     demos = _library(8, [60, 120, 95, 75, 110, 100, 90, 85, 70])
     demos[4] = np.ones((9, 3))  # not ok: never run early, reported as before
@@ -181,7 +180,7 @@ def test_bad_scene_with_an_early_first_iteration_raises_and_leaves_the_registrar
 def test_chunk_plan_covers_every_item_once_and_shrinks_at_the_end(
     n_items: int, chunk_size: int, n_workers: int
 ) -> None:
-    from knotlab.core.registration.rpm import chunk_plan
+    from knotlab.core.registration.chunks import chunk_plan
 
     plan = chunk_plan(n_items, chunk_size, n_workers)
     covered = [i for start, stop in plan for i in range(start, stop)]
@@ -403,7 +402,8 @@ def test_transpose_block_copies_exactly_one_block(dt) -> None:
 
 def test_kernel_refuses_inputs_without_the_vector_padding() -> None:
     """Numba does not check bounds: unpadded TPS bases must raise, not read past the arrays."""
-    from knotlab.core.registration.rpm import demo_side, rpm_batch, scene_side
+    from knotlab.core.registration.rpm import rpm_batch
+    from knotlab.core.registration.sides import demo_side, scene_side
 
     demos = _library(3, [40, 33, 40])
     demo, scene = demo_side(demos, SCAN), scene_side(demos[1], SCAN)
@@ -471,7 +471,8 @@ def _numpy_reference(demo, scene, params):
 @pytest.mark.parametrize("scale_m", [1.0, 0.5])
 @pytest.mark.parametrize("rule", ["batch", "weighted"])
 def test_kernel_matches_numpy_reference_on_random_clouds(rule: str, scale_m: float) -> None:
-    from knotlab.core.registration.rpm import demo_side, rpm_batch, scene_side
+    from knotlab.core.registration.rpm import rpm_batch
+    from knotlab.core.registration.sides import demo_side, scene_side
 
     rng = np.random.default_rng(11)
     params = replace(SCAN, target_rule=rule, dtype="float64", n_iter=6, scale_m=scale_m)

@@ -1,11 +1,11 @@
-"""Shared fixtures: the tiny real library (tests.minilib), its featurizer, transferer, a world."""
+"""Shared fixtures: the tiny real library (tests.minilib), an agent on it (its featurizer and
+transferer), a world."""
 
 from __future__ import annotations
 
 import pytest
 
-from knotlab.core.registration.planner import DemoTransferer
-from knotlab.core.selection.features import LibraryFeaturizer
+from knotlab.core.agent import Agent
 from knotlab.core.world.sim import RopeWorld
 from tests.minilib import mini_library
 
@@ -16,13 +16,18 @@ def lib():
 
 
 @pytest.fixture(scope="module")
-def featurizer(lib):
-    return LibraryFeaturizer(lib)
+def agent(lib):
+    return Agent(lib)  # nearest neighbour
 
 
 @pytest.fixture(scope="module")
-def transferer(lib):
-    return DemoTransferer(lib)
+def featurizer(agent):
+    return agent.featurizer
+
+
+@pytest.fixture(scope="module")
+def transferer(agent):
+    return agent.transferer
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from knotlab.core.selection.policies import beam_level, certain_members
+from knotlab.core.selection.lookahead import beam_level, certain_members
 
 
 def _random_node(rng: np.random.Generator, n_actions: int = 12) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Cost-rank features (issue 12): where each demo stands in a state's registration-cost order."""
+"""Cost-rank features: where each demo stands in a state's registration-cost order."""
 
 from __future__ import annotations
 

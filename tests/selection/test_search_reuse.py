@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.explain import search_tree_lines
-from knotlab.core.selection.policies import LookaheadPolicy, StepContext
+from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 
 pytestmark = pytest.mark.xdist_group("minilib")

@@ -6,17 +6,15 @@ import numpy as np
 import pytest
 
 from knotlab.core.errors import KnotlabError
-from knotlab.core.experiments.episode import run_episode
 from knotlab.core.experiments.labeller import OracleParams, label_task
 from knotlab.core.registration.planner import TransferPlan
+from knotlab.core.selection.decision import Policy, StepContext
 from knotlab.core.selection.learner import MaxMarginQLearner
+from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.policies import (
     GreedyPolicy,
-    LookaheadPolicy,
     NearestNeighbourPolicy,
-    Policy,
     SimulationOraclePolicy,
-    StepContext,
     make_policy,
 )
 from knotlab.core.selection.qmodel import QModel
@@ -130,13 +128,9 @@ def test_lookahead_backup_compares_negative_values_at_the_deepest_level(featuriz
     assert decision.action == 2  # the best among the deepest, though all are negative
 
 
-def test_oracle_policy_and_episode_tie_the_knot_from_the_last_step(
-    world, lib, featurizer, transferer
-):
+def test_oracle_policy_and_episode_tie_the_knot_from_the_last_step(world, lib, agent):
     nodes = lib[lib.index_of("s000-t2")].pre_nodes_k3
-    record = run_episode(
-        world, nodes, SimulationOraclePolicy(), featurizer, transferer, task_id="last", max_steps=2
-    )
+    record = agent.with_policy("oracle").run_episode(world, nodes, max_steps=2)
     assert record.success and record.failure_kind is None
     step = record.steps[0]
     assert step.knot and step.outcome == "knot" and step.stage == 3
@@ -146,15 +140,15 @@ def test_oracle_policy_and_episode_tie_the_knot_from_the_last_step(
 
 
 def test_episode_records_failed_registration_and_errors_without_raising(
-    world, lib, featurizer, transferer, monkeypatch
+    world, lib, agent, monkeypatch
 ):
     nodes = lib[0].pre_nodes_k3
 
     def failing_plan(cloud, a):
         return TransferPlan(a, None, None, "registration: forced failure")
 
-    monkeypatch.setattr(transferer, "plan", failing_plan)
-    record = run_episode(world, nodes, NearestNeighbourPolicy(), featurizer, transferer)
+    monkeypatch.setattr(agent.transferer, "plan", failing_plan)
+    record = agent.run_episode(world, nodes)
     assert not record.success and record.failure_kind == "registration"
     assert record.steps[0].outcome == "registration"
 
@@ -164,15 +158,15 @@ def test_episode_records_failed_registration_and_errors_without_raising(
         def choose(self, ctx):
             raise KnotlabError("solver returned NaN")
 
-    record = run_episode(world, nodes, Broken(), featurizer, transferer)
+    broken = agent.with_policy("nn")
+    broken.policy = Broken()
+    record = broken.run_episode(world, nodes)
     assert record.failure_kind == "error" and "NaN" in record.error
 
 
-def test_oracle_labeller_labels_a_state_one_step_from_the_knot(world, lib, featurizer, transferer):
+def test_oracle_labeller_labels_a_state_one_step_from_the_knot(world, lib, agent):
     nodes = lib[lib.index_of("s001-t2")].pre_nodes_k3
-    result = label_task(
-        world, nodes, featurizer, transferer, task_id="t", params=OracleParams(sim_budget=6)
-    )
+    result = label_task(agent, world, nodes, task_id="t", params=OracleParams(sim_budget=6))
     ex = result.execution
     assert result.solved and ex.ended_in_knot and ex.source == "oracle"
     assert [s.outcome for s in ex.steps] == ["knot"]

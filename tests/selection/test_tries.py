@@ -1,4 +1,5 @@
-"""Tried candidates (issue 12's lever): simulated on real states, read back, applied to the QP."""
+"""Tried candidates: simulated on real states, read back, applied to the QP (see
+docs/reference/learning.md, "Tried candidates")."""
 
 from __future__ import annotations
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
 from knotlab.core.world.frames import FrameRecorder
-from knotlab.core.world.knot_sequence import overhand_sequence
 from knotlab.core.world.rope import straight_rope
 from knotlab.core.world.sim import RopeWorld
 

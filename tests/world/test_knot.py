@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
 from knotlab.core.world.knot import analyse_knot, gauss_code, is_overhand_knot
-from knotlab.core.world.knot_sequence import overhand_sequence
 from knotlab.core.world.rope import resample_by_arc_length, straight_rope
 from knotlab.core.world.sim import RopeWorld
 

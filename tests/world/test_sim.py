@@ -223,15 +223,9 @@ def test_observe_cloud_is_small_on_the_surface_and_seeded(world) -> None:
     assert len(world.observe(max_points=30)) == 30
 
 
-def test_render_topdown_writes_a_png(world, tmp_path) -> None:
-    world.reset(wavy_rope())
-    out = world.render_topdown(tmp_path / "rope.png", size=200)
-    data = out.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
-
-
 def test_link_axes_of_the_health_check_equal_the_full_rotation_bit_for_bit() -> None:
-    from knotlab.core.world.sim import _quat_to_axes, _quat_z_axes
+    from knotlab.core.world.observation import _quat_to_axes
+    from knotlab.core.world.sim import _quat_z_axes
 
     q = np.random.default_rng(3).normal(size=(500, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -240,7 +234,7 @@ def test_link_axes_of_the_health_check_equal_the_full_rotation_bit_for_bit() -> 
 
 
 def test_an_execution_reports_its_time_and_steps_per_phase(world) -> None:
-    from knotlab.core.world.knot_sequence import overhand_sequence
+    from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
     from knotlab.core.world.sim import EXECUTION_PHASES
 
     result = world.execute(overhand_sequence()[0])  # the fixture's rope is the straight one
@@ -252,8 +246,8 @@ def test_an_execution_reports_its_time_and_steps_per_phase(world) -> None:
 
 def _knot_sequence_outcomes(gripper: GripperParams) -> tuple[list, list[int], np.ndarray]:
     """(crossings after each step, settle steps of each, final nodes) of the fixed 3-step knot."""
+    from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
     from knotlab.core.world.knot import analyse_knot
-    from knotlab.core.world.knot_sequence import overhand_sequence
 
     params = RopeParams()
     crossings, settle = [], []

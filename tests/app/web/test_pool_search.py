@@ -8,8 +8,9 @@ import pytest
 
 from knotlab.app.web.sim_pool import PoolRunner, SimPool
 from knotlab.core.registration.planner import DemoTransferer
+from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.features import LibraryFeaturizer
-from knotlab.core.selection.policies import LookaheadPolicy, StepContext
+from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.sim import RopeWorld
 from tests.minilib import mini_library

@@ -12,7 +12,8 @@ from knotlab.app import defaults
 from knotlab.app.web.resources import load_resources
 from knotlab.app.web.session import LabelSession, Phase, SessionError
 from knotlab.core.registration.planner import DemoTransferer
-from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy, StepContext
+from knotlab.core.selection.decision import StepContext
+from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
 from knotlab.core.selection.qmodel import QModel
 from knotlab.labeling_db.store import open_store
 

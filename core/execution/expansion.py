@@ -21,7 +21,8 @@ from typing import Protocol
 
 import numpy as np
 
-from knotlab.core.registration.planner import ActionOutcome, DemoTransferer, apply_demo
+from knotlab.core.execution.apply import ActionOutcome, apply_demo
+from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores

@@ -9,8 +9,8 @@ Start: the straight rope along x, end A at x = -0.5, end B at x = +0.5, resting 
    lift drags the tail along) and pull it past the tail. Equivalent to the tail passing under,
    which a point gripper on a table cannot do directly.
 3. Pull the tail out through the loop.
-Rationale and measurements: shared/reference/rope_sim_notes.md, section 3. Open loop: it works on
-the straight rope only; the scripted expert generalises it.
+Rationale and measurements: docs/reference/rope_world.md, "The fixed 3-step sequence". Open
+loop: it works on the straight rope only; the scripted expert generalises it.
 """
 
 from __future__ import annotations

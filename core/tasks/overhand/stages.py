@@ -1,11 +1,11 @@
 """Topological progress stage of the rope toward an overhand knot, from its crossing code.
 
-Stages (shared/reference/transfer_notes.md): 3 = overhand knot (trefoil under both closures);
-2 = the loop's side laid over the tail, code U0 O1 O0 U1; 1 = a single loop, code U0 O0 read from
-the end that was not laid; 0 = anything else. Codes are compared in a direction-free canonical form
-(the lexicographic minimum of the code read from either end), so the stage does not depend on
-which end the rope's node list starts at. Used by the simulation oracle and failure analysis only:
-learned features never see it (they must stay task-independent).
+Stages (docs/reference/knot_and_stages.md, "Stage codes"): 3 = overhand knot (trefoil under both
+closures); 2 = the loop's side laid over the tail, code U0 O1 O0 U1; 1 = a single loop, code U0 O0
+read from the end that was not laid; 0 = anything else. Codes are compared in a direction-free
+canonical form (the lexicographic minimum of the code read from either end), so the stage does not
+depend on which end the rope's node list starts at. Used by the simulation oracle and failure
+analysis only: learned features never see it (they must stay task-independent).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The state-aware scripted overhand-knot expert, its style parameters and the start-rope sampler.
 
 The expert ties an overhand knot with one point gripper (the right one; the left stays open and
-parked) in the 3 steps of shared/reference/rope_sim_notes.md section 3, computing every pick and
-place from the rope it observes at that step:
+parked) in the 3 steps of docs/reference/rope_world.md, "The fixed 3-step sequence", computing
+every pick and place from the rope it observes at that step:
 
 1. **Loop.** Frame: origin at arc length ``loop_start`` from end A, x along the standing part
    there (chord over the preceding 20 cm), y = ``chirality`` x (x rotated by +90 degrees), so
@@ -49,10 +49,10 @@ import numpy as np
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.seeds import generator
+from knotlab.core.tasks.overhand.knot_sequence import pick_place, single_gripper_trajectory
+from knotlab.core.tasks.overhand.stages import Stage, stage_of_code
 from knotlab.core.world.knot import analyse_knot
-from knotlab.core.world.knot_sequence import pick_place, single_gripper_trajectory
 from knotlab.core.world.rope import resample_by_arc_length, segment_crossings_xy
-from knotlab.core.world.stages import Stage, stage_of_code
 from knotlab.core.world.trajectory import GripperTrajectory
 
 N_STEPS = 3

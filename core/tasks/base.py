@@ -1,0 +1,136 @@
+"""What makes a task a task: the `Task` protocol and the records it hands out.
+
+Everything task specific sits behind this protocol: the success test, the stage function and its
+stage names, the scripted expert, the step limit, the perturbation levels of its start sets and
+the files it ships. The rest of core (registration, features, policies, episodes) is
+task-independent and reaches the task only through it.
+Shape suffix: k = rope nodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+
+if TYPE_CHECKING:  # the expert drives the simulator: only for the checker
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.world.sim import RopeWorld
+
+Split = Literal["train", "test"]
+
+
+@dataclass(frozen=True)
+class StageReading:
+    """The rope's progress toward the task's goal: a stage number (higher = further), the
+    crossing code it was read from, and whether the goal (the knot) is reached."""
+
+    stage: int
+    code: str
+    success: bool
+
+
+@dataclass(frozen=True)
+class PerturbationLevel:
+    """A named start-state distribution: demo starts perturbed by a tent field of size ``rho``."""
+
+    name: str
+    rho_m: float
+    seed: int
+    n_centres: int = 7
+
+
+@dataclass(frozen=True)
+class TaskFiles:
+    """The files a task ships, as names inside its package's ``data`` folder."""
+
+    package: str  # the task's Python package, e.g. knotlab.core.tasks.overhand
+    library: str = "demos_default.npz"
+    model: str = "model_default.npz"
+    task_set_pattern: str = "tasks_{level}_{split}.npz"
+
+    def path(self, name: str) -> Path:
+        """A shipped file's path on disk (installed as package data, read through
+        importlib.resources, so a non-editable install finds it too)."""
+        ref = resources.files(self.package).joinpath("data", name)
+        return Path(str(ref))
+
+    @property
+    def library_path(self) -> Path:
+        """The shipped demonstration library."""
+        return self.path(self.library)
+
+    @property
+    def model_path(self) -> Path:
+        """The shipped default Q-model."""
+        return self.path(self.model)
+
+    def task_set_path(self, level: str, split: str) -> Path:
+        """The shipped task set of one perturbation level and split."""
+        return self.path(self.task_set_pattern.format(level=level, split=split))
+
+    def load_task_set(self, level: str, split: str) -> TaskSet:
+        """The shipped start ropes of one level and split (e.g. main, test)."""
+        from knotlab.core.demos.tasks import TaskSet
+
+        return TaskSet.load(self.task_set_path(level, split))
+
+
+@runtime_checkable
+class Task(Protocol):
+    """A rope-manipulation task: its goal, progress, expert, limits and shipped files."""
+
+    name: str
+    description: str
+    step_limit: int  # steps an episode may take: the expert's usual count + 2
+    expert_steps: int  # steps the scripted expert takes
+    stage_names: tuple[str, ...]  # index = stage number
+    levels: Mapping[str, PerturbationLevel]
+    files: TaskFiles
+
+    def stage(self, nodes_k3: np.ndarray) -> StageReading:
+        """The rope's stage (and whether the goal is reached) from its node positions."""
+        ...
+
+    def is_success(self, nodes_k3: np.ndarray) -> bool:
+        """True when the rope is in the goal configuration (a real knot, by its invariant)."""
+        ...
+
+    def run_expert(self, world: RopeWorld, start_nodes_k3: np.ndarray, seed: int) -> object:
+        """Run the scripted expert from a start rope (its demo record)."""
+        ...
+
+    def sample_start(self, rng: np.random.Generator) -> np.ndarray:
+        """A start rope on the table (k, 3) for a new demonstration."""
+        ...
+
+
+def level_of(task: Task, level: str) -> PerturbationLevel:
+    """The named perturbation level of ``task``; a one-line error names the known ones."""
+    try:
+        return task.levels[level]
+    except KeyError:
+        known = ", ".join(task.levels)
+        raise InvalidInputError(
+            f"task {task.name!r} has no perturbation level {level!r}; known: {known}"
+        ) from None
+
+
+def check_task_of(kind: str, recorded: object, task: Task) -> None:
+    """Refuse a file made for another task (files without a task record are the overhand
+    knot's: they were made before a second task could exist)."""
+    name = DEFAULT_TASK if recorded is None else str(recorded)
+    if name != task.name:
+        raise InvalidInputError(
+            f"the {kind} was made for task {name!r}, not {task.name!r}: use the {task.name} "
+            f"task's {kind} or pass --task {name}"
+        )
+
+
+DEFAULT_TASK = "overhand"
