@@ -53,6 +53,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         defaults.task_set_path(level, "train", task),
         top_k=args.top,
         overlap=getattr(args, "overlap", 0.0),
+        task=task,
     )
     store = open_store(db_url(args), create=True, auto_upgrade=True)
     added = resources.register_starts(store, level)

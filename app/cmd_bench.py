@@ -16,6 +16,8 @@ from knotlab.app.options import (
     add_task_set_argument,
     integer,
     library_file,
+    load_library,
+    load_task_set,
     number,
     task_set_file,
 )
@@ -83,8 +85,6 @@ def resolve_model_path(arg: str | None, out_dir: Path, task: str = DEFAULT_TASK)
 
 def _run(args: argparse.Namespace) -> int:
     from knotlab.core.atomic import check_output_dir
-    from knotlab.core.demos.library import DemoLibrary
-    from knotlab.core.demos.tasks import TaskSet
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.experiments.bench import (
         format_table,
@@ -101,8 +101,8 @@ def _run(args: argparse.Namespace) -> int:
     library_path = library_file(args)
     task_path = task_set_file(args, "test")
     try:
-        library = DemoLibrary.load(library_path)
-        task_set = TaskSet.load(task_path)
+        library = load_library(library_path, args)
+        task_set = load_task_set(task_path, args)
     except FileNotFoundError as exc:
         hint = "make it with `knotlab demos` / `knotlab tasks`, or pass a path"
         raise FileNotFoundError(f"{exc} ({hint})") from exc

@@ -16,6 +16,8 @@ from knotlab.app.options import (
     db_url,
     integer,
     library_file,
+    load_library,
+    load_task_set,
     task_set_file,
 )
 
@@ -55,8 +57,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
-    from knotlab.core.demos.library import DemoLibrary
-    from knotlab.core.demos.tasks import TaskSet
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.experiments.labeller import OracleParams, oracle_label_tasks
     from knotlab.labeling_db.store import open_store
@@ -64,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
     args.db = db_url(args)
     task_path = task_set_file(args, args.split)
     library_path = library_file(args)
-    tasks = TaskSet.load(task_path)
-    library = DemoLibrary.load(library_path)
+    tasks = load_task_set(task_path, args)
+    library = load_library(library_path, args)
     if tasks.split != "train":
         raise InvalidInputError(
             f"{task_path} is a {tasks.split!r} task set: labels train the model, so only "

@@ -15,6 +15,7 @@ from knotlab.app.options import (
     add_task_argument,
     db_url,
     library_file,
+    load_library,
 )
 
 LabelFormat = Literal["jsonl", "csv"]
@@ -78,13 +79,12 @@ def _tries(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.experiments.tries import try_candidates, try_jobs
     from knotlab.core.selection.tries import read_tries
     from knotlab.labeling_db.interchange import read_labels
 
     executions = [item.execution for item in read_labels(args.labels)]
-    library = DemoLibrary.load(library_file(args))
+    library = load_library(library_file(args), args)
     out = Path(args.out)
     # Resumable: states already in OUT are kept and skipped (a torn last line is refused by
     # read_tries, naming it, rather than silently dropped).

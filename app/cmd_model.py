@@ -4,29 +4,30 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 from knotlab.app.options import add_flag
 from knotlab.core.jsonsafe import json_safe
+
+if TYPE_CHECKING:
+    from knotlab.core.selection.qmodel import QModel
 
 # Training metrics worth a line in the text view (the rest are in --json).
 _SHOWN_METRICS = ("train_top1", "train_mean_expert_rank", "bellman_mean_abs_error", "status")
 
 
-def model_summary(model) -> dict:
+def model_summary(model: QModel) -> dict:
     """The `knotlab model info --json` keys of a loaded QModel."""
-    from knotlab.core.world.observation import ObservationModel
-
-    spec = model.feature_spec
+    spec = model.feature_spec  # (models saved before observation_model read as 'cloud')
     return {
         "hash": model.content_hash(),
-        "library_hash": spec.get("library_hash"),
-        # models saved before the key existed were trained on camera clouds (features.py)
-        "observation_model": spec.get("observation_model", ObservationModel.CLOUD.value),
-        "feature_set": spec.get("feature_set"),
+        "library_hash": spec.library_hash,
+        "observation_model": spec.observation_model,
+        "feature_set": spec.feature_set,
         "n_features": model.n_features,
-        "feature_names": list(spec.get("names", [])),
-        "n_actions": len(spec.get("action_keys", [])),
-        "landmark_hash": spec.get("landmark_hash"),
+        "feature_names": list(spec.names),
+        "n_actions": len(spec.action_keys),
+        "landmark_hash": spec.landmark_hash,
         "hyperparameters": model.hyperparameters,
         "metrics": {k: v for k, v in model.metrics.items() if k != "training_run"},
         "training_run": model.metrics.get("training_run"),

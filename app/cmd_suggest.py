@@ -18,6 +18,8 @@ from knotlab.app.options import (
     add_task_set_argument,
     integer,
     library_file,
+    load_library,
+    load_task_set,
     model_file,
     task_set_file,
 )
@@ -49,8 +51,6 @@ def _clouds_from_store(url: str) -> dict:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from knotlab.core.demos.library import DemoLibrary
-    from knotlab.core.demos.tasks import TaskSet
     from knotlab.core.errors import InvalidInputError, KnotlabError
     from knotlab.core.selection.acquisition import (
         rank_for_labelling,
@@ -68,7 +68,7 @@ def _run(args: argparse.Namespace) -> int:
     url = args.db or (None if args.task_set else os.environ.get(DB_ENV) or None)
     progress = not args.no_progress
     try:
-        library = DemoLibrary.load(library_file(args))
+        library = load_library(library_file(args), args)
         model = QModel.load(model_file(args))
         featurizer = LibraryFeaturizer.for_model(library, model)
         if url is not None:
@@ -76,7 +76,7 @@ def _run(args: argparse.Namespace) -> int:
             where = f"{url} (start states without a completed episode)"
         else:
             path = task_set_file(args, "train")
-            tasks = TaskSet.load(path)
+            tasks = load_task_set(path, args)
             if tasks.split != "train":
                 raise InvalidInputError(
                     f"{path} is a {tasks.split!r} task set; suggest labels training starts"

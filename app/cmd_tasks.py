@@ -15,6 +15,7 @@ from knotlab.app.options import (
     check_not_shipped,
     integer,
     library_file,
+    load_library,
     number,
     resolve_level,
 )
@@ -60,7 +61,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_generate(args: argparse.Namespace) -> int:
     """Generate both splits and save them."""
     from knotlab.core.atomic import check_output_dir, check_output_file
-    from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.demos.tasks import generate_tasks
     from knotlab.core.errors import InvalidInputError
 
@@ -73,7 +73,7 @@ def run_generate(args: argparse.Namespace) -> int:
         path = out_dir / f"tasks_{level}_{split}.npz"
         check_output_file(path, flag="--out-dir")
         check_not_shipped(path, flag="--out-dir", force=args.force)
-    lib = DemoLibrary.load(library_file(args))
+    lib = load_library(library_file(args), args)
     starts = lib.start_states()
     extra = {"library_hash": lib.content_hash()}
     for split, n in splits:

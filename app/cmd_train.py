@@ -27,6 +27,7 @@ from knotlab.app.options import (
     check_not_shipped,
     default_db_url,
     library_file,
+    load_library,
     number,
 )
 from knotlab.core.jsonsafe import json_safe
@@ -74,7 +75,6 @@ def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExec
 
 def _run(args: argparse.Namespace) -> int:
     from knotlab.core.atomic import check_output_dir, check_output_file
-    from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.selection.model_selection import QModelSearch, SelectBy
     from knotlab.core.selection.tries import read_tries
@@ -87,7 +87,7 @@ def _run(args: argparse.Namespace) -> int:
         check_not_shipped(out_path, force=args.force, kind="model")
     else:
         check_output_dir(defaults.MODELS_DIR, flag="--out (default folder)")
-    library = DemoLibrary.load(library_path)
+    library = load_library(library_path, args)
     executions = load_executions(args.labels, args.db)
     if not executions:
         raise InvalidInputError(

@@ -22,10 +22,14 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from knotlab.app import defaults
 from knotlab.core.tasks import DEFAULT_TASK, get_task, task_names
+
+if TYPE_CHECKING:
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
 
 DB_ENV = "KNOTLAB_DB_URL"
 
@@ -290,6 +294,26 @@ def task_set_file(args: argparse.Namespace, split: str) -> Path:
     level = resolve_level(args)
     task_set = getattr(args, "task_set", None)
     return Path(task_set) if task_set else defaults.task_set_path(level, split, task_of(args))
+
+
+def load_library(path: str | Path, args: argparse.Namespace) -> DemoLibrary:
+    """The demo library at ``path``, refused (one line) when it belongs to another --task."""
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.tasks import check_task_of
+
+    library = DemoLibrary.load(path)
+    check_task_of("demo library", library.metadata.get("task"), get_task(task_of(args)))
+    return library
+
+
+def load_task_set(path: str | Path, args: argparse.Namespace) -> TaskSet:
+    """The task set at ``path``, refused (one line) when it belongs to another --task."""
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.tasks import check_task_of
+
+    task_set = TaskSet.load(path)
+    check_task_of("task set", task_set.metadata.get("task"), get_task(task_of(args)))
+    return task_set
 
 
 def check_not_shipped(

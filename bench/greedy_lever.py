@@ -1,6 +1,6 @@
 """Greedy success by cross-validation on the training starts: which feature set to train with.
 
-Issue 12, item 4: the learned greedy policy must beat nearest neighbour by a margin, and the lever
+The question: the learned greedy policy must beat nearest neighbour by a margin, and the lever
 that gets it there must be chosen on training data only. This script splits the labelled
 executions (one per training start) into K seeded folds; for every feature variant it fits one
 model per fold on the other folds' labels and runs greedy on the fold's own training starts, so

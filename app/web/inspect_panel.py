@@ -193,7 +193,7 @@ class InspectPanel:
                 "|---|---|---|",
             ]
             lines += [f"| `{k}` | {d} | {v:.2f} |" for k, d, v in rows]
-            tree = search_tree_lines(info, keys)
+            tree = search_tree_lines(info, keys, stage_names=self.inspector.res.task.stage_names)
             if tree:
                 lines += ["", "**The search tree** (children under their parent, in search order):"]
                 lines += ["", *tree]

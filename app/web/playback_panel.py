@@ -24,7 +24,8 @@ from knotlab.core.experiments.playback import (
     export_playback,
     resimulate,
 )
-from knotlab.core.tasks.overhand.stages import Stage
+from knotlab.core.selection.explain import stage_name
+from knotlab.core.tasks import get_task
 
 FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
 SPEEDS = ("1x", "2x", "4x", "8x")
@@ -188,13 +189,11 @@ class PlaybackPanel:
         s = episode.steps[step]
         score = "-" if s.score is None or not np.isfinite(s.score) else f"{s.score:.3f}"
         stage = replay.stages[step] if step < len(replay.stages) else None
-        try:
-            stage_name = Stage(stage).name.lower() if stage is not None else "?"
-        except ValueError:
-            stage_name = str(stage)
+        task = get_task(self.library.task) if self.library is not None else get_task()
+        stage_label = stage_name(stage, task.stage_names)
         self.caption.content = (
             f"step **{step + 1}** of {len(episode.steps)} · demo `{s.demo_key}` · score {score}"
-            f" · stage reached: **{stage_name}**"
+            f" · stage reached: **{stage_label}**"
         )
 
     def inspect_step(self) -> None:

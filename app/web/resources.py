@@ -185,6 +185,7 @@ def load_resources(
 ) -> AppResources:
     """Library and task set from files (the task set must be a training split)."""
     library = DemoLibrary.load(library_path)
+    check_task_of("demo library", library.metadata.get("task"), get_task(task or library.task))
     tasks = TaskSet.load(tasks_path)
     if tasks.split != "train":
         raise InvalidInputError(

@@ -28,13 +28,11 @@ import math
 import time
 from dataclasses import dataclass
 
-import numpy as np
-
 from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.parallel import PerProcess
 from knotlab.core.seeds import child_seed
-from knotlab.core.tasks.overhand.expert import run_expert, sample_start_rope, sample_style
+from knotlab.core.tasks import DEFAULT_TASK, get_task
 from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel, observe
 
 GENERATOR = "knotlab.core.demogen/1"
@@ -52,6 +50,7 @@ class GenSettings:
     max_attempts: int = 3  # tries of steps 2 and 3 from the same pre-step state
     max_restarts: int = 4  # loops laid per demo at most
     observation: ObservationModel = DEFAULT_OBSERVATION  # how pre-step clouds are made
+    task: str = DEFAULT_TASK  # whose scripted expert demonstrates
 
     def to_dict(self) -> dict:
         """JSON-able copy."""
@@ -64,6 +63,9 @@ class GenSettings:
             "max_attempts": int(self.max_attempts),
             "max_restarts": int(self.max_restarts),
             "observation_model": self.observation.value,
+            # Absent means the overhand knot (libraries made before tasks were named), so the
+            # shipped library's bytes and hash stay what they were.
+            **({} if self.task == DEFAULT_TASK else {"task": self.task}),
         }
 
 
@@ -100,22 +102,8 @@ def run_candidate(job: tuple[GenSettings, int]) -> CandidateResult:
     settings, j = job
     world = _WORLD.get()
     s = candidate_seed(settings.seed, j)
-    rng = np.random.default_rng(s)
-    start = sample_start_rope(
-        rng,
-        bend_amplitude=settings.bend_amplitude,
-        max_rotation=settings.max_rotation,
-        max_translation=settings.max_translation,
-    )
-    style = sample_style(rng, mirror_prob=settings.mirror_prob)
-    run = run_expert(
-        world,
-        start,
-        style,
-        seed=s,
-        max_attempts=settings.max_attempts,
-        max_restarts=settings.max_restarts,
-    )
+    run = get_task(settings.task).demonstrate(world, settings, s)
+    style = run.style
     steps = []
     for rec in run.steps:
         world.reset(rec.pre_nodes_k3)

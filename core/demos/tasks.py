@@ -258,6 +258,7 @@ def generate_tasks(
     workers: int | None = None,
     progress: bool = True,
     extra_metadata: dict | None = None,
+    task: str = "overhand",
 ) -> TaskSet:
     """Make ``n_tasks`` start states by perturbing demo start states (tent model), settled."""
     from knotlab.core.parallel import map_processes
@@ -294,6 +295,8 @@ def generate_tasks(
         "n_centres": int(n_centres),
         "seed": int(seed),
         "settle_seconds": float(settle_seconds),
+        # Absent means the overhand knot (sets made before tasks were named): same bytes.
+        **({} if task == "overhand" else {"task": task}),
         **(extra_metadata or {}),
     }
     return TaskSet(tasks, meta)

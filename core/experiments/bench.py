@@ -117,13 +117,14 @@ class RunIdentity:
     noise: float
     max_steps: int
     model_hash: str | None = None  # None until a learned policy ran
+    task: str = "overhand"  # results made before tasks were named are the overhand knot's
 
     def differences(self, stored: RunIdentity) -> list[str]:
         """'name: stored X, now Y' for every field that differs (a model hash not yet pinned on
         either side does not)."""
         diffs = [
             f"{name}: stored {getattr(stored, name)!r}, now {getattr(self, name)!r}"
-            for name in ("library_hash", "task_set_hash", "seed", "noise", "max_steps")
+            for name in ("library_hash", "task_set_hash", "seed", "noise", "max_steps", "task")
             if getattr(stored, name) != getattr(self, name)
         ]
         if (
@@ -719,7 +720,7 @@ def run_bench(
     model: QModel | None = None,
     seed: int = 0,
     noise: float = 0.0,
-    max_steps: int = 5,
+    max_steps: int | None = None,
     first: TaskLimits = None,
     workers: int | None = None,
     engine: str = "local",
@@ -757,14 +758,16 @@ def run_bench(
     if learned and model is None:
         raise InvalidInputError(f"policies {learned} need a trained model")
     lib_hash = library.content_hash()
-    check_task_of("task set", task_set.metadata.get("task"), get_task(library.task))
+    task = get_task(library.task)
+    check_task_of("task set", task_set.metadata.get("task"), task)
+    max_steps = task.step_limit if max_steps is None else max_steps
     if learned and model is not None:
         from knotlab.core.selection.compatibility import check_compatible
         from knotlab.core.selection.features import LibraryFeaturizer
 
         # Every worker builds an Agent that checks this again; a mismatch found there would
         # surface as a broken pool after run.json was written. Found here, nothing is.
-        check_compatible(library, model, get_task(library.task))
+        check_compatible(library, model, task)
         LibraryFeaturizer.for_model(library, model)  # its feature columns match the model's
     observation = ObservationModel.of_library_metadata(library.metadata)
 
@@ -778,6 +781,7 @@ def run_bench(
         float(noise),
         int(max_steps),
         model.content_hash() if learned and model is not None else None,
+        task.name,
     ).merged(stored_identity(out, finished))
     out.mkdir(parents=True, exist_ok=True)
     _write_json_atomic(out / RUN_FILE, {"identity": asdict(identity)})

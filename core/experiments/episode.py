@@ -21,6 +21,7 @@ from knotlab.core.errors import KnotlabError
 from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.execution.memo import OutcomeMemo, execute_with_memo
 from knotlab.core.failures import FailureKind
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.decision import StepContext
 from knotlab.core.world.trajectory import GripperTrajectory
@@ -64,7 +65,7 @@ class StepRecord:
     scores_a: np.ndarray
     nn_cost_a: np.ndarray
     trajectory: GripperTrajectory | None
-    outcome: str  # "knot", "progressed", or the FailureKind value of a failed step
+    outcome: StepOutcome | FailureKind  # KNOT, PROGRESSED, or the failure kind of the step
     knot: bool
     stage: int
     gauss_code: str
@@ -151,7 +152,7 @@ class EpisodeRecord:
             self.wall_s,
             tuple(self.decision_times()),
             tuple(s.chosen_key for s in self.steps),
-            tuple(s.outcome for s in self.steps),
+            tuple(s.outcome.value for s in self.steps),
             tuple(int(s.stage) for s in self.steps),
             tuple(_finite(s.scores_a[s.chosen]) for s in self.steps),
             tuple(encode_nodes(s.nodes_before_k3) for s in self.steps),
@@ -171,12 +172,12 @@ def step_seed(seed: int, step: int) -> int:
     return derive_seed(seed, step)
 
 
-def _classify(outcome: ActionOutcome) -> str:
+def _classify(outcome: ActionOutcome) -> StepOutcome | FailureKind:
     """The step's outcome word: knot, progressed, or the failure kind set by planner or sim."""
     if outcome.knot:
-        return "knot"
+        return StepOutcome.KNOT
     kind = outcome.failure_kind
-    return "progressed" if kind is None else kind.value
+    return StepOutcome.PROGRESSED if kind is None else kind
 
 
 def run_episode(

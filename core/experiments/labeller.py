@@ -1,10 +1,11 @@
 """Expert labels without a human: an oracle that plays the expert as the original labelling did.
 
-lfd_facts section 11: the expert was shown candidates in registration-cost order and accepted the
-first that looked like progress. Our oracle makes "looks like progress" precise with a bounded
-search in simulation: in each state it tries the ``candidates`` lowest-cost demos in cost order and
-accepts the first whose outcome still lets a knot be tied within the remaining steps, decided by
-the same search from the outcome (depth-first, at most ``sim_budget`` simulated actions per task).
+The expert was shown candidates in registration-cost order and accepted the first that looked like
+progress (docs/reference/original_system.md, 'Labelling protocol'). Our oracle makes "looks like
+progress" precise with a bounded search in simulation: in each state it tries the ``candidates``
+lowest-cost demos in cost order and accepts the first whose outcome still lets a knot be tied
+within the remaining steps, decided by the same search from the outcome (depth-first, at most
+``sim_budget`` simulated actions per task).
 
 - The search first follows outcomes that advance the topological stage (loop, loop over tail,
   knot); outcomes that keep the stage are tried only while the remaining steps leave slack, and
@@ -24,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
 
@@ -81,17 +83,17 @@ class _Search:
             outcome = self.agent.act(self.world, a, cloud_n3=cloud_n3)
             self.sims += 1
 
-            def step(label: str, a: int = a) -> LabelledStep:
+            def step(label: StepOutcome, a: int = a) -> LabelledStep:
                 return LabelledStep(0, cloud_n3, keys[a], label, nodes_k3, shown, shown_scores)
 
             if outcome.knot:
-                return [step("knot")], True
+                return [step(StepOutcome.KNOT)], True
             if outcome.failure is not None:
                 continue
             if outcome.stage > stage and steps_left > 1:
                 result, exhaustive = self._descend(outcome, steps_left)
                 if result is not None:
-                    return [step("progressed"), *result], True
+                    return [step(StepOutcome.PROGRESSED), *result], True
                 complete &= exhaustive
             elif outcome.stage == stage and steps_left - 1 > goal_stage - stage:
                 deferred.append((a, outcome))
@@ -99,7 +101,7 @@ class _Search:
             result, exhaustive = self._descend(outcome, steps_left)
             if result is not None:
                 step_ = LabelledStep(
-                    0, cloud_n3, keys[a], "progressed", nodes_k3, shown, shown_scores
+                    0, cloud_n3, keys[a], StepOutcome.PROGRESSED, nodes_k3, shown, shown_scores
                 )
                 return [step_, *result], True
             complete &= exhaustive
@@ -153,7 +155,7 @@ def label_task(
         source="oracle",
         labeller="oracle",
         steps=labelled,
-        ended_in_knot=bool(labelled) and labelled[-1].outcome == "knot",
+        ended_in_knot=bool(labelled) and labelled[-1].outcome == StepOutcome.KNOT,
         dead_ends=tuple(search.dead_ends),
         task_id=task_id,
         library_hash=agent.featurizer.library_hash,

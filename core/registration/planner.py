@@ -2,7 +2,7 @@
 
 The library scan ranks demos with the cheap ``SCAN`` schedule; the chosen demo is registered
 again with the ``EXACT`` schedule and its gripper trajectory warped through that f (paper
-section II; lfd_facts section 3.2).
+section II; docs/reference/registration.md, 'Trajectory transfer').
 """
 
 from __future__ import annotations

@@ -21,11 +21,11 @@ def check_compatible(library: DemoLibrary, model: QModel | None, task: Task) -> 
     if model is None:
         return
     spec = model.feature_spec
-    check_task_of("model", spec.get("task"), task)
+    check_task_of("model", spec.task, task)
     lib_hash = library.content_hash()
-    if spec.get("library_hash") not in (None, lib_hash):
+    if spec.library_hash != lib_hash:
         raise InvalidInputError(
-            f"the model was trained on library {spec.get('library_hash')}, "
+            f"the model was trained on library {spec.library_hash}, "
             f"this library is {lib_hash}: retrain it with `knotlab train`"
         )
     check_observation(model, ObservationModel.of_library_metadata(library.metadata))
@@ -33,7 +33,7 @@ def check_compatible(library: DemoLibrary, model: QModel | None, task: Task) -> 
 
 def check_observation(model: QModel, observation: ObservationModel) -> None:
     """Raise unless the model was trained on clouds of the library's observation model."""
-    model_obs = ObservationModel.parse(model.feature_spec.get("observation_model") or "cloud")
+    model_obs = ObservationModel.parse(model.feature_spec.observation_model)
     if model_obs is not observation:
         raise InvalidInputError(
             f"the model was trained on '{model_obs.value}' observations but this library's "
@@ -44,8 +44,8 @@ def check_observation(model: QModel, observation: ObservationModel) -> None:
 
 def check_feature_names(model: QModel, names: tuple[str, ...]) -> None:
     """Raise unless the model's feature columns are the ones this code computes."""
-    theirs = model.feature_spec.get("names")
-    if theirs is not None and list(theirs) != list(names):
+    theirs = model.feature_spec.names
+    if list(theirs) != list(names):
         raise InvalidInputError(
             "the model's features do not match this library and code "
             f"({len(theirs)} model columns, {len(names)} here): retrain it with `knotlab train`"

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from knotlab.core.selection.qmodel import QModel
-from knotlab.core.tasks.overhand.stages import Stage
+from knotlab.core.tasks import DEFAULT_TASK, get_task
 
 
 @dataclass(frozen=True)
@@ -56,13 +56,17 @@ def lookahead_tree(info: dict, keys: tuple[str, ...]) -> list[tuple[str, int, fl
     return sorted(rows, key=lambda r: (-r[1], -r[2]))
 
 
-def search_tree_lines(info: dict, keys: tuple[str, ...], max_lines: int = 60) -> list[str]:
+def search_tree_lines(
+    info: dict, keys: tuple[str, ...], max_lines: int = 60, stage_names: tuple[str, ...] = ()
+) -> list[str]:
     """The lookahead's whole tree as a nested markdown list, in the order it was searched.
 
     One line per expansion: the demo, its Q at the parent, the stage its simulation reached,
     the child's value V = max Q there (none past the horizon or after a failure), and a mark
-    where the knot was found; children are indented under their parent.
+    where the knot was found; children are indented under their parent. ``stage_names``: the
+    task's (default: the overhand knot's).
     """
+    names = stage_names or get_task(DEFAULT_TASK).stage_names
     tree = info.get("tree") or []
     children: dict[int, list[dict]] = {}
     for entry in tree:
@@ -79,7 +83,7 @@ def search_tree_lines(info: dict, keys: tuple[str, ...], max_lines: int = 60) ->
             memo = " (reused)" if e.get("reused") else ""
             lines.append(
                 f"{'  ' * depth}- `{keys[int(e['action'])]}` Q {e['q']:.2f} -> stage "
-                f"{_stage_name(e.get('stage'))}, V {value}{knot}{failed}{memo}"
+                f"{stage_name(e.get('stage'), names)}, V {value}{knot}{failed}{memo}"
             )
             emit(int(e["node"]), depth + 1)
 
@@ -89,8 +93,8 @@ def search_tree_lines(info: dict, keys: tuple[str, ...], max_lines: int = 60) ->
     return lines
 
 
-def _stage_name(stage: int | None) -> str:
-    try:
-        return Stage(int(stage)).name.lower() if stage is not None else "?"
-    except ValueError:
-        return str(stage)
+def stage_name(stage: int | None, names: tuple[str, ...]) -> str:
+    """A task's name for stage number ``stage`` ("?" when unknown, the number if out of range)."""
+    if stage is None:
+        return "?"
+    return names[int(stage)] if 0 <= int(stage) < len(names) else str(stage)

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -46,6 +45,7 @@ from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
 from knotlab.core.selection.compatibility import check_feature_names, check_observation
+from knotlab.core.selection.feature_spec import FeatureSpec
 from knotlab.core.selection.landmarks import Landmarks
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.observation import ObservationModel, observe
@@ -92,40 +92,6 @@ class _ScanMemo:
             while len(self._items) > self.size:
                 self._items.popitem(last=False)
             return item
-
-
-@dataclass(frozen=True)
-class FeatureSpec:
-    """What each feature column means, for one library: saved with every model."""
-
-    feature_set: str
-    library_hash: str
-    action_keys: tuple[str, ...]
-    names: tuple[str, ...]
-    indicator_mask: tuple[bool, ...]
-    phase_steps: tuple[int, ...]
-    phase_temperature: float
-    landmark_hash: str | None = None
-    observation_model: str = ObservationModel.CLOUD.value
-    rank_features: bool = False
-
-    def to_dict(self) -> dict:
-        """JSON-able form (what QModel stores); rank_features only when on, so models made
-        before it existed keep their spec (and content hash)."""
-        out = {
-            "feature_set": self.feature_set,
-            "library_hash": self.library_hash,
-            "action_keys": list(self.action_keys),
-            "names": list(self.names),
-            "indicator_mask": list(self.indicator_mask),
-            "phase_steps": list(self.phase_steps),
-            "phase_temperature": self.phase_temperature,
-            "landmark_hash": self.landmark_hash,
-            "observation_model": self.observation_model,
-        }
-        if self.rank_features:
-            out["rank_features"] = True
-        return out
 
 
 def _grasp_points(library: DemoLibrary) -> list[np.ndarray]:
@@ -242,9 +208,9 @@ class LibraryFeaturizer:
             library,
             registrar=registrar,
             params=params,
-            phase_temperature=float(model.feature_spec.get("phase_temperature", 0.25)),
+            phase_temperature=model.feature_spec.phase_temperature,
             landmarks=getattr(model, "landmarks", None),
-            rank_features=bool(model.feature_spec.get("rank_features", False)),
+            rank_features=model.feature_spec.rank_features,
         )
         check_observation(model, featurizer.observation)
         check_feature_names(model, featurizer.feature_spec.names)

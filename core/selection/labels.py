@@ -16,9 +16,9 @@ import numpy as np
 
 from knotlab.core.arrays import optional_points_n3, points_n3
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.outcomes import STEP_OUTCOMES, StepOutcome
 
-Outcome = Literal["progressed", "knot", "dead_end", "misgrasp", "skipped"]
-OUTCOMES: tuple[str, ...] = ("progressed", "knot", "dead_end", "misgrasp", "skipped")
+OUTCOMES: tuple[str, ...] = STEP_OUTCOMES  # the stored strings, in StepOutcome order
 LabelSource = Literal["oracle", "human"]
 
 
@@ -29,7 +29,7 @@ class LabelledStep:
     step_index: int
     cloud_n3: np.ndarray  # observed cloud before the step (what features are computed from)
     chosen_demo: str  # stable DemoLibrary key, e.g. "s012-t1"
-    outcome: Outcome
+    outcome: StepOutcome  # (a stored string is read as its member)
     rope_nodes_k3: np.ndarray | None = None  # simulator state, when known
     candidates: tuple[str, ...] = ()  # demo keys shown to the expert, in display order
     candidate_scores_c: np.ndarray | None = None  # scores shown (Q or registration cost)
@@ -40,6 +40,7 @@ class LabelledStep:
             raise InvalidInputError(f"step_index must be >= 0, got {self.step_index}")
         if self.outcome not in OUTCOMES:
             raise InvalidInputError(f"outcome must be one of {OUTCOMES}, got {self.outcome!r}")
+        object.__setattr__(self, "outcome", StepOutcome(self.outcome))
         if not isinstance(self.chosen_demo, str) or not self.chosen_demo:
             raise InvalidInputError("chosen_demo must be a non-empty demo key")
         object.__setattr__(self, "cloud_n3", points_n3("cloud_n3", self.cloud_n3))
@@ -94,7 +95,7 @@ class LabelledExecution:
                 raise InvalidInputError(
                     f"execution {self.execution_id!r}: step {i} has step_index {step.step_index}"
                 )
-        if self.ended_in_knot and (not steps or steps[-1].outcome != "knot"):
+        if self.ended_in_knot and (not steps or steps[-1].outcome != StepOutcome.KNOT):
             raise InvalidInputError(
                 f"execution {self.execution_id!r} ended_in_knot but its last step is not a knot"
             )

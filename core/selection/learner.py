@@ -36,6 +36,7 @@ from scipy import sparse
 
 from knotlab.core.arrays import finite_matrix
 from knotlab.core.errors import InvalidInputError, SolverError
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.labels import LabelledExecution
 from knotlab.core.selection.qmodel import QModel
 
@@ -148,7 +149,7 @@ def build_training_data(
     for e_idx, execution in enumerate(executions):
         prev: int | None = None
         for step in execution.steps:
-            if step.outcome == "skipped":
+            if step.outcome == StepOutcome.SKIPPED:
                 prev = None
                 continue
             phi_ad, scan = featurizer.features(step.cloud_n3)
@@ -158,10 +159,10 @@ def build_training_data(
             idx = len(states) - 1
             if prev is not None:
                 pairs.append((prev, idx))
-            if step.outcome == "knot":
+            if step.outcome == StepOutcome.KNOT:
                 goals.append(idx)
                 prev = None
-            elif step.outcome in ("dead_end", "misgrasp"):
+            elif step.outcome in (StepOutcome.DEAD_END, StepOutcome.MISGRASP):
                 # The chosen action led nowhere useful: no Bellman link out of it.
                 prev = None
             else:

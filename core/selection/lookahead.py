@@ -75,7 +75,9 @@ def certain_members(known_q: list[np.ndarray], unknown: int, width: int) -> list
 
 
 class LookaheadPolicy(Policy):
-    """Beam search in simulation over Q (lfd_facts section 6), stopping at the first knot.
+    """Beam search in simulation over Q, stopping at the first knot.
+
+    The search follows docs/reference/policies.md, 'Lookahead beam search'.
 
     Each level expands the ``width`` best (node, action) pairs by Q (each node offering its best
     ``width``, or ``width // 2`` (at least 1) once three or more nodes are open), simulating every

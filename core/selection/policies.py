@@ -58,7 +58,7 @@ class SimulationOraclePolicy(Policy):
     """The library's ceiling estimate: try the ``width`` lowest-cost demos in simulation.
 
     Keeps the candidate reaching the highest topological stage (ties: lower registration cost),
-    stopping at the first knot (transfer_notes.md, "greedy top-10 oracle"). Uses the knot
+    stopping at the first knot (docs/reference/policies.md, 'Simulation oracle'). Uses the knot
     stage, so it is task-specific: a yardstick, never a feature.
     """
 

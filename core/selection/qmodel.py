@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from knotlab.core.atomic import atomic_open
 from knotlab.core.errors import CorruptFileError, InvalidInputError
 from knotlab.core.hashing import ContentHash
+from knotlab.core.selection.feature_spec import FeatureSpec
 from knotlab.core.selection.landmarks import Landmarks
 
 QMODEL_FORMAT_VERSION = 1
@@ -21,19 +23,23 @@ QMODEL_FORMAT_VERSION = 1
 
 @dataclass(frozen=True, eq=False)
 class QModel:
-    """A learned linear Q-function over a saved feature spec: Q = w . standardise(phi) + w0."""
+    """A learned linear Q-function over a saved feature spec: Q = w . standardise(phi) + w0.
+
+    ``spec_dict`` is the feature spec exactly as stored (and hashed): files made before a spec
+    key existed lack it, so it is kept as read; :attr:`feature_spec` is its typed form.
+    """
 
     weights_d: np.ndarray
     bias: float
     feature_mean_d: np.ndarray
     feature_scale_d: np.ndarray
-    feature_spec: dict
+    spec_dict: dict
     hyperparameters: dict
     metrics: dict = field(default_factory=dict)
     landmarks: Landmarks | None = None  # landmark states the features refer to (saved along)
 
     def __post_init__(self) -> None:
-        if self.landmarks is not None and self.feature_spec.get("landmark_hash") != (
+        if self.landmarks is not None and self.spec_dict.get("landmark_hash") != (
             self.landmarks.content_hash()
         ):
             raise InvalidInputError("QModel landmarks do not match its feature spec")
@@ -52,6 +58,11 @@ class QModel:
         object.__setattr__(self, "feature_mean_d", mean)
         object.__setattr__(self, "feature_scale_d", scale)
         object.__setattr__(self, "bias", float(self.bias))
+
+    @cached_property
+    def feature_spec(self) -> FeatureSpec:
+        """The typed feature spec (InvalidInputError naming the key a partial spec lacks)."""
+        return FeatureSpec.from_dict(self.spec_dict)
 
     @property
     def n_features(self) -> int:
@@ -75,7 +86,7 @@ class QModel:
         h = ContentHash()
         for arr in (self.weights_d, self.feature_mean_d, self.feature_scale_d):
             h.array(arr, dtype="<f8")
-        h.array(np.float64(self.bias)).json(self.feature_spec)
+        h.array(np.float64(self.bias)).json(self.spec_dict)
         if self.landmarks is not None:  # (absent for models without landmarks: hashes unchanged)
             h.text(self.landmarks.content_hash())
         return h.hexdigest()
@@ -86,7 +97,7 @@ class QModel:
             "format": "knotlab-qmodel",
             "version": QMODEL_FORMAT_VERSION,
             "bias": self.bias,
-            "feature_spec": self.feature_spec,
+            "feature_spec": self.spec_dict,
             "hyperparameters": self.hyperparameters,
             "metrics": self.metrics,
             "hash": self.content_hash(),

@@ -9,7 +9,7 @@ Shape suffix: k = rope nodes.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -20,8 +20,10 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 
 if TYPE_CHECKING:  # the expert drives the simulator: only for the checker
+    from knotlab.core.demos.generation import GenSettings
     from knotlab.core.demos.tasks import TaskSet
     from knotlab.core.world.sim import RopeWorld
+    from knotlab.core.world.trajectory import GripperTrajectory
 
 Split = Literal["train", "test"]
 
@@ -102,12 +104,38 @@ class Task(Protocol):
         """True when the rope is in the goal configuration (a real knot, by its invariant)."""
         ...
 
-    def run_expert(self, world: RopeWorld, start_nodes_k3: np.ndarray, seed: int) -> object:
-        """Run the scripted expert from a start rope (its demo record)."""
+    def demonstrate(self, world: RopeWorld, settings: GenSettings, seed: int) -> ExpertRun:
+        """Draw a start rope and an expert style from ``seed`` and run the scripted expert."""
         ...
 
-    def sample_start(self, rng: np.random.Generator) -> np.ndarray:
-        """A start rope on the table (k, 3) for a new demonstration."""
+
+class ExpertStep(Protocol):
+    """One accepted expert step: the rope before and after and the trajectory between."""
+
+    step_index: int
+    pre_nodes_k3: np.ndarray
+    trajectory: GripperTrajectory
+    post_nodes_k3: np.ndarray
+    code: str
+    attempts: int
+    style: _Style
+
+
+class ExpertRun(Protocol):
+    """A scripted expert's attempt at the task from one start rope."""
+
+    start_nodes_k3: np.ndarray
+    steps: Sequence[ExpertStep]
+    knotted: bool  # the goal was reached
+    failed_step: int | None
+    wall_time: float
+    restarts: int
+    style: _Style
+
+
+class _Style(Protocol):
+    def to_dict(self) -> dict[str, object]:
+        """The style as JSON-able numbers (stored with each demo)."""
         ...
 
 

@@ -4,7 +4,7 @@ Frames: metres and seconds, right-handed, z up, table top at z = 0.
 Shape suffixes: l = rope links (capsules), k = rope nodes (l + 1 capsule end points),
 g = grippers (left, right), n = cloud points, 3/4 = xyz/quaternion xyzw.
 
-Model (measured in shared/reference/rope_sim_notes.md): N separate rigid capsules joined end to end
+Model (docs/reference/rope_world.md, 'Rope model'): N separate rigid capsules joined end to end
 by point-to-point constraints; neighbours do not collide, every other pair does. A gripper is a
 point-to-point constraint from the grasped link to the world whose pivot follows the gripper.
 

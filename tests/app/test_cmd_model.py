@@ -18,11 +18,14 @@ def _model(path: Path) -> QModel:
         bias=0.25,
         feature_mean_d=np.zeros(3),
         feature_scale_d=np.ones(3),
-        feature_spec={
+        spec_dict={
             "feature_set": "knotlab-features-v1",
             "library_hash": "feedc0ffee123456",
             "action_keys": ["s000-t0", "s000-t1"],
             "names": ["c1_map", "c2_bend_f", "grasp_dist_m"],
+            "indicator_mask": [False, False, False],
+            "phase_steps": [0, 1, 2],
+            "phase_temperature": 0.25,
             "observation_model": "tracked",
             "landmark_hash": None,
         },

@@ -46,9 +46,11 @@ def test_suggest_honours_knotlab_db_url_unless_a_task_set_is_given(
     capsys.readouterr()
     assert main(args) == 0 and read == ["sqlite:///env.db"]
     assert main([*args, "--db", "sqlite:///flag.db"]) == 0 and read[-1] == "sqlite:///flag.db"
-    # the file wins over the environment (the shipped model does not fit the mini library's
-    # rope, so only that it was read from the file is checked)
-    main([*args, "--task-set", str(tasks)])
-    assert len(read) == 2
+    capsys.readouterr()
+    assert main([*args, "--task-set", str(tasks)]) == 0 and len(read) == 2  # the file wins
+    assert sorted(r["key"] for r in json.loads(capsys.readouterr().out)) == [
+        "mini-train-0000",
+        "mini-train-0001",
+    ]
     assert main([*args, "--db", "sqlite:///flag.db", "--task-set", str(tasks)]) == 2
     assert "give --db or --task-set, not both" in capsys.readouterr().err

@@ -39,7 +39,7 @@ def test_train_from_a_labels_file_saves_a_model_and_reports_validation(tmp_path,
     assert summary["train_metrics"]["train_top1"] == 1.0  # 3 states, separable
     model = QModel.load(out)
     assert model.content_hash() == summary["model_hash"]
-    assert model.feature_spec["library_hash"] == mini_library(2).content_hash()
+    assert model.feature_spec.library_hash == mini_library(2).content_hash()
     assert model.metrics["training_run"]["validation"]["n_states"] == 3
 
 

@@ -33,6 +33,7 @@ def test_small_library_has_all_three_steps_of_successful_demos(small):
     assert report.knotted >= 2
 
 
+@pytest.mark.slow
 def test_segments_replay_to_their_post_nodes_exactly(small):
     lib = DemoLibrary.load(small[1])
     with RopeWorld() as world:
@@ -43,6 +44,7 @@ def test_segments_replay_to_their_post_nodes_exactly(small):
             assert np.array_equal(world.rope_nodes(), seg.post_nodes_k3), seg.key
 
 
+@pytest.mark.slow
 def test_regenerating_with_the_same_seed_is_bit_identical(small, tmp_path):
     again = generate_library(2, GenSettings(seed=5), workers=2, progress=False)
     path = again.library.save(tmp_path / "b.npz")

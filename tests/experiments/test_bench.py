@@ -539,8 +539,8 @@ def test_a_model_whose_features_do_not_fit_the_library_is_refused_before_any_epi
     from knotlab.core.selection.qmodel import QModel
 
     model = QModel.load(files["model"])
-    names = [*model.feature_spec["names"][:-1], "demo[s099-t9]"]  # a demo this library lacks
-    bad = dataclasses.replace(model, feature_spec={**model.feature_spec, "names": names})
+    names = [*model.feature_spec.names[:-1], "demo[s099-t9]"]  # a demo this library lacks
+    bad = dataclasses.replace(model, spec_dict={**model.spec_dict, "names": names})
     args = _bench_args(files, tmp_path / "out", policies="nn,greedy")
     args[args.index("--model") + 1] = str(bad.save(tmp_path / "bad.npz"))
     args[args.index("--workers") + 1] = "2"  # a mismatch found in a worker would break the pool

@@ -15,7 +15,7 @@ import pytest
 from knotlab.app import cli
 from tests.minilib import mini_library, mini_tasks, write_mini_files, write_mini_labels
 
-pytestmark = pytest.mark.xdist_group("bench")
+pytestmark = [pytest.mark.xdist_group("bench"), pytest.mark.slow]  # ~1 CPU-min each
 
 _UNTIMED = ("wall_s", "decision_s", "pid")  # how long and where, not what happened
 

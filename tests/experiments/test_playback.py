@@ -106,6 +106,7 @@ def test_playback_command_errors_are_one_line(bench_run, tmp_path, capsys) -> No
     assert not Path(tmp_path / "x.gif").exists()
 
 
+@pytest.mark.slow
 def test_a_store_episode_plays_from_its_labelled_start(bench_run, tmp_path, capsys) -> None:
     from knotlab.labeling_db.store import open_store
     from tests.minilib import mini_executions

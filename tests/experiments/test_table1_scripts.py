@@ -31,6 +31,7 @@ def _episodes(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+@pytest.mark.slow
 def test_table1_shared_logs_each_segment_and_resumes_after_a_stop(project_root, tmp_path) -> None:
     """A TERM mid-run leaves a stop line and the finished episodes; a rerun only adds the rest."""
     report = load_bench_module(project_root, "table1_report")

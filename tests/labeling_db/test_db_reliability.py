@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from knotlab.core.selection.labels import LabelledStep
 from knotlab.labeling_db.store import open_store
@@ -38,6 +39,7 @@ def _labeller_process(url: str, worker: int, start: mp.synchronize.Event) -> Non
     store.close()
 
 
+@pytest.mark.slow
 def test_eight_processes_label_concurrently_without_losing_or_duplicating(db_url: str) -> None:
     n_states = N_PROCESSES * EPISODES_PER_PROCESS
     with open_store(db_url) as store:

@@ -100,7 +100,7 @@ def test_a_model_keeps_its_landmarks_and_rebuilds_its_featurizer(tmp_path):
             plain.bias,
             plain.feature_mean_d,
             plain.feature_scale_d,
-            plain.feature_spec,
+            plain.spec_dict,
             plain.hyperparameters,
             landmarks=marks,
         )

@@ -114,7 +114,7 @@ def test_a_model_is_refused_with_a_library_of_another_observation_model() -> Non
     cloud_lib = mini_library(2)
     featurizer = LibraryFeaturizer(cloud_lib)
     model = MaxMarginQLearner(C=10.0).fit(mini_executions(2), featurizer)
-    assert model.feature_spec["observation_model"] == "cloud"
+    assert model.feature_spec.observation_model == "cloud"
     centre_lib = _centreline_copy(cloud_lib)
     assert LibraryFeaturizer(centre_lib).observation is ObservationModel.CENTRELINE
     with pytest.raises(InvalidInputError, match="'cloud' observations"):

@@ -65,6 +65,6 @@ def test_a_rank_model_round_trips_through_for_model_and_ranks_like_training() ->
     phi, _ = featurizer.features(executions[0].steps[0].cloud_n3)
     assert phi.shape[1] == model.n_features
     # Without the flag the featurizer's columns do not match the model: refused by name.
-    spec = {k: v for k, v in model.feature_spec.items() if k != "rank_features"}
+    spec = {k: v for k, v in model.spec_dict.items() if k != "rank_features"}
     with pytest.raises(InvalidInputError, match="retrain"):
-        LibraryFeaturizer.for_model(library, dataclasses.replace(model, feature_spec=spec))
+        LibraryFeaturizer.for_model(library, dataclasses.replace(model, spec_dict=spec))

@@ -177,6 +177,6 @@ def test_oracle_labeller_labels_a_state_one_step_from_the_knot(world, lib, agent
 
 def test_learner_fits_real_features_and_ranks_the_expert_first(featurizer):
     model = MaxMarginQLearner(C=100.0, D=1.0).fit(mini_executions(2), featurizer)
-    assert model.feature_spec["names"] == list(featurizer.feature_spec.names)
+    assert model.feature_spec.names == featurizer.feature_spec.names
     assert model.metrics["train_top1"] >= 0.8
     assert model.metrics["n_bellman_rows"] >= 2

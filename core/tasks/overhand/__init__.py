@@ -19,6 +19,7 @@ from knotlab.core.tasks.base import PerturbationLevel, StageReading, TaskFiles
 from knotlab.core.tasks.registry import register_task
 
 if TYPE_CHECKING:
+    from knotlab.core.demos.generation import GenSettings
     from knotlab.core.tasks.overhand.expert import DemoRun
     from knotlab.core.world.sim import RopeWorld
 
@@ -58,15 +59,24 @@ class OverhandTask:
 
         return bool(np.all(np.isfinite(nodes_k3))) and is_overhand_knot(nodes_k3)
 
-    def run_expert(self, world: RopeWorld, start_nodes_k3: np.ndarray, seed: int) -> DemoRun:
-        """The scripted 3-step expert with a style drawn from ``seed``."""
-        from knotlab.core.tasks.overhand.expert import run_expert, sample_style
+    def demonstrate(self, world: RopeWorld, settings: GenSettings, seed: int) -> DemoRun:
+        """A gently curved start rope and an expert style drawn from ``seed``, then the
+        scripted 3-step expert (retries and new loops as ``settings`` allow)."""
+        from knotlab.core.tasks.overhand.expert import run_expert, sample_start_rope, sample_style
 
-        style = sample_style(np.random.default_rng(seed))
-        return run_expert(world, start_nodes_k3, style, seed=seed)
-
-    def sample_start(self, rng: np.random.Generator) -> np.ndarray:
-        """A gently curved, rotated and shifted rope on the table."""
-        from knotlab.core.tasks.overhand.expert import sample_start_rope
-
-        return sample_start_rope(rng)
+        rng = np.random.default_rng(seed)
+        start = sample_start_rope(
+            rng,
+            bend_amplitude=settings.bend_amplitude,
+            max_rotation=settings.max_rotation,
+            max_translation=settings.max_translation,
+        )
+        style = sample_style(rng, mirror_prob=settings.mirror_prob)
+        return run_expert(
+            world,
+            start,
+            style,
+            seed=seed,
+            max_attempts=settings.max_attempts,
+            max_restarts=settings.max_restarts,
+        )

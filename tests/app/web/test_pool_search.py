@@ -24,6 +24,7 @@ def _ctx(world, featurizer, transferer, snapshot):
     return StepContext(world, cloud, featurizer.scan(cloud), featurizer, transferer, 0, 5)
 
 
+@pytest.mark.slow
 def test_pool_search_matches_the_sequential_search(tmp_path):
     lib = mini_library(2)
     path = lib.save(tmp_path / "lib.npz")
