@@ -7,6 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from knotlab.app import defaults
 from knotlab.app.options import (
@@ -23,6 +24,12 @@ from knotlab.app.options import (
 )
 from knotlab.core.jsonsafe import json_safe
 from knotlab.core.tasks import DEFAULT_TASK
+
+if TYPE_CHECKING:  # core.experiments.bench loads the simulator: imported when a bench runs
+    from knotlab.core.experiments.bench import Engine
+
+# core.experiments.bench.ENGINES, spelled out so that building the parser stays light.
+_ENGINE_CHOICES: tuple[Engine, ...] = ("local", "ray")
 
 # Lookahead policies la<D>x<W> beyond these simulate width**depth candidates per step: a typo
 # like la99x99 would run for ever, so it is refused when the command line is read.
@@ -96,6 +103,7 @@ def _run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     policies: list[str] = args.policies
+    engine: Engine = args.engine
     validate_policies(policies)
     out_dir = check_output_dir(args.out_dir, flag="--out-dir")
     library_path = library_file(args)
@@ -129,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
         "task_set": str(task_path),
         "model": str(model_path) if model_path else None,
         "workers": args.workers,
-        "engine": args.engine,
+        "engine": engine,
         "seed": args.seed,
         "noise": args.noise,
         "first": args.first,
@@ -150,7 +158,7 @@ def _run(args: argparse.Namespace) -> int:
         max_steps=args.max_steps,
         first=args.first,
         workers=args.workers,
-        engine=args.engine,
+        engine=engine,
         ray_address=args.ray_address,
         progress=not args.no_progress,
         arguments=arguments,
@@ -231,7 +239,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_flag(p, "--library", detail="default: the task's shipped library")
     add_task_set_argument(p, "the test starts (default: the task's shipped set of the level)")
     add_flag(p, "--workers", detail="or Ray actors")
-    p.add_argument("--engine", choices=("local", "ray"), default="local")
+    p.add_argument("--engine", choices=_ENGINE_CHOICES, default="local")
     p.add_argument(
         "--share-simulations",
         action="store_true",

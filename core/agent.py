@@ -41,11 +41,11 @@ from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 from knotlab.core.tasks import Task, get_task
 from knotlab.core.world.frames import FrameRecorder
+from knotlab.core.world.protocol import World
 from knotlab.core.world.trajectory import GripperTrajectory
 
-if TYPE_CHECKING:  # the simulator and the episode record: only for the checker
+if TYPE_CHECKING:  # the episode record: only for the checker
     from knotlab.core.experiments.episode import EpisodeRecord
-    from knotlab.core.world.sim import RopeWorld
 
 RegistrationPreset = Literal["scan", "exact"]
 _PRESETS: dict[str, RegistrationParams] = {"scan": SCAN, "exact": EXACT}
@@ -182,9 +182,7 @@ class Agent:
         return self.policy.name
 
     # ------------------------------------------------------------------ one decision
-    def observe(
-        self, world: RopeWorld, *, noise: float = 0.0, seed: int | None = None
-    ) -> np.ndarray:
+    def observe(self, world: World, *, noise: float = 0.0, seed: int | None = None) -> np.ndarray:
         """The world's rope as a cloud (n, 3) under the library's observation model."""
         return self.featurizer.observe(world, noise=noise, seed=seed)
 
@@ -229,7 +227,7 @@ class Agent:
 
     def context(
         self,
-        world: RopeWorld,
+        world: World,
         cloud_n3: np.ndarray,
         *,
         step_index: int = 0,
@@ -249,7 +247,7 @@ class Agent:
 
     def choose(
         self,
-        world: RopeWorld,
+        world: World,
         *,
         cloud_n3: np.ndarray | None = None,
         step_index: int = 0,
@@ -263,7 +261,7 @@ class Agent:
 
     def act(
         self,
-        world: RopeWorld,
+        world: World,
         action: int | str,
         *,
         cloud_n3: np.ndarray | None = None,
@@ -279,7 +277,7 @@ class Agent:
 
     def run_episode(
         self,
-        world: RopeWorld,
+        world: World,
         start: RopeTask | np.ndarray,
         *,
         seed: int | None = None,
@@ -306,7 +304,7 @@ class Agent:
             memo=memo,
         )
 
-    def warm_up(self, world: RopeWorld, start_nodes_k3: Sequence[Sequence[float]]) -> None:
+    def warm_up(self, world: World, start_nodes_k3: Sequence[Sequence[float]]) -> None:
         """Compile the numba kernels of both registration presets before anything is timed."""
         world.reset(np.asarray(start_nodes_k3, dtype=float))
         cloud = self.observe(world)

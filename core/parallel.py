@@ -14,7 +14,7 @@ import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from typing import Generic, TypeVar
+from typing import Generic, TypedDict, TypeVar, Unpack
 
 from tqdm import tqdm
 
@@ -107,7 +107,19 @@ def _abandon(pool: ProcessPoolExecutor) -> None:
     end_processes(processes)
 
 
-def map_processes(fn: Callable[[T], R], items: Iterable[T], **kwargs) -> list[R]:
+class _PoolOptions(TypedDict, total=False):
+    """The keyword arguments of :func:`imap_processes`, which :func:`map_processes` passes on."""
+
+    workers: int | None
+    initializer: Callable[[], None] | None
+    desc: str | None
+    total: int | None
+    progress: bool
+
+
+def map_processes(
+    fn: Callable[[T], R], items: Iterable[T], **kwargs: Unpack[_PoolOptions]
+) -> list[R]:
     """Like :func:`imap_processes` but returns results in input order."""
     items = list(items)
     out: list = [None] * len(items)

@@ -23,6 +23,7 @@ from typing import Any, Literal, TextIO
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledExecution, LabelledStep
 from knotlab.labeling_db.errors import ConflictError, ImportRowError, InvalidRecordError
 from knotlab.labeling_db.models import EPISODE_STATUSES
@@ -82,7 +83,7 @@ def execution_to_dict(item: StoredExecution) -> dict[str, Any]:
             {
                 "step_index": step.step_index,
                 "chosen_demo": step.chosen_demo,
-                "outcome": step.outcome,
+                "outcome": step.outcome.value,
                 "candidates": list(step.candidates),
                 "candidate_scores": _arr(step.candidate_scores_c),
                 "model_version": step.model_version,
@@ -248,7 +249,7 @@ def _parse_step(row: _Row, i: int) -> tuple[LabelledStep, datetime | None, State
             step_index=index,
             cloud_n3=row.get("cloud_n3", "cloud"),
             chosen_demo=row.get("chosen_demo", "str"),
-            outcome=row.enum("outcome", OUTCOMES),
+            outcome=StepOutcome(row.enum("outcome", OUTCOMES)),
             rope_nodes_k3=row.get("rope_nodes_k3", "cloud", optional=True),
             candidates=tuple(row.get("candidates", "strlist")),
             candidate_scores_c=row.get("candidate_scores", "vector", optional=True),

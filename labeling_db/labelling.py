@@ -12,6 +12,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
 from knotlab.labeling_db.decisions import start_key
@@ -349,7 +350,7 @@ class LabellingStore(StoreBase):
                 .limit(1)
             ).first()
             ep.status = status
-            ep.ended_in_knot = last == "knot"
+            ep.ended_in_knot = last == StepOutcome.KNOT
             ep.finished_at = utcnow()
             s.flush()
             return _episode_info(s, ep)

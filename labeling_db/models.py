@@ -28,11 +28,13 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 from sqlalchemy.types import TypeDecorator
 
+from knotlab.core.outcomes import STEP_OUTCOMES
+
 # The Alembic revision these classes describe (newest in labeling_db/migrations/versions): a
 # database stamped with it is opened without loading Alembic. Bump it with every new migration;
 # tests/test_db_schema.py checks it against the migrations.
 SCHEMA_REVISION = "0002"
-OUTCOME_VALUES = ("progressed", "knot", "dead_end", "misgrasp", "skipped")
+OUTCOME_VALUES = STEP_OUTCOMES  # StepOutcome's values, as the 0001 migration wrote them
 SOURCE_VALUES = ("oracle", "human")
 EPISODE_STATUSES = ("in_progress", "completed", "abandoned")
 STATE_ROLES = ("start", "step", "dead_end")

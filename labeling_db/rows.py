@@ -10,6 +10,7 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from knotlab.core.outcomes import StepOutcome
 from knotlab.labeling_db.arrays import decode_array, encode_array
 from knotlab.labeling_db.errors import (
     InvalidRecordError,
@@ -163,7 +164,7 @@ def _label_row(ep: Episode, state_id: int, step: Any, source: str, labelled_at: 
         if step.candidate_scores_c is None
         else encode_array(step.candidate_scores_c, name="candidate_scores_c"),
         ranked_by_model=step.model_version,
-        outcome=step.outcome,
+        outcome=StepOutcome(step.outcome).value,
         source=source,
         labelled_at=labelled_at,
     )

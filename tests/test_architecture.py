@@ -55,7 +55,12 @@ def test_app_uses_only_the_installed_names() -> None:
 
 @pytest.mark.parametrize(
     "folder, subpackages",
-    [("core", {"world", "registration", "demos", "selection", "execution", "experiments", "tasks"})],
+    [
+        (
+            "core",
+            {"world", "registration", "demos", "selection", "execution", "experiments", "tasks"},
+        )
+    ],
 )
 def test_core_is_split_by_stage_of_the_science(folder: str, subpackages: set[str]) -> None:
     found = {p.parent.name for p in (ROOT / folder).glob("*/__init__.py")}

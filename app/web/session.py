@@ -25,6 +25,8 @@ import numpy as np
 
 from knotlab.app.web.resources import AppResources, RankingModel
 from knotlab.core.execution.apply import ActionOutcome
+from knotlab.core.failures import FailureKind
+from knotlab.core.outcomes import StepOutcome
 from knotlab.core.registration import ScanResult
 from knotlab.core.selection.labels import DeadEndState, LabelledStep
 from knotlab.core.selection.ranking import RankedDemo, rank_demos
@@ -89,14 +91,14 @@ class TryResult:
     demo_key: str
     outcome: ActionOutcome
     frames: ExecutionFrames | None
-    word: str  # progressed | knot | misgrasp | exploded | registration
+    word: StepOutcome | FailureKind  # PROGRESSED, KNOT, or the try's failure kind
     cloud_after_n3: np.ndarray | None
     wall_s: float
 
     @property
     def acceptable(self) -> bool:
         """Only an execution that ran may be accepted (a misgrasp or blow-up can be rejected)."""
-        return self.word in ("progressed", "knot")
+        return self.word in (StepOutcome.PROGRESSED, StepOutcome.KNOT)
 
 
 @dataclass
@@ -316,8 +318,11 @@ class LabelSession:
                     self.world, cand.ranked.demo_index, cloud_n3=cloud, frames=rec
                 )
             frames = outcome.execution.frames if outcome.execution is not None else None
-            word = "knot" if outcome.knot else (outcome.failure_kind or "progressed")
-            word = str(getattr(word, "value", word))
+            word: StepOutcome | FailureKind = (
+                StepOutcome.KNOT
+                if outcome.knot
+                else (outcome.failure_kind or StepOutcome.PROGRESSED)
+            )
             after = None if outcome.exploded else self.ranking.featurizer.observe(self.world)
         except Exception:
             with self._lock:
@@ -356,7 +361,9 @@ class LabelSession:
                 step_index=self.step_index,
                 cloud_n3=self.cloud_n3,
                 chosen_demo=result.demo_key,
-                outcome="knot" if result.word == "knot" else "progressed",
+                outcome=StepOutcome.KNOT
+                if result.word == StepOutcome.KNOT
+                else StepOutcome.PROGRESSED,
                 rope_nodes_k3=self.nodes_k3,
                 candidates=tuple(c.ranked.demo_key for c in self.candidates),
                 candidate_scores_c=np.array([c.ranked.score for c in self.candidates]),
@@ -370,9 +377,9 @@ class LabelSession:
             )
             self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({result.word})")
             self.step_index += 1
-            if result.word == "knot" or self.step_index >= self.max_steps:
+            if result.word == StepOutcome.KNOT or self.step_index >= self.max_steps:
                 self.store.finish_episode(self.episode.episode_id, status="completed")
-                done = "knot tied" if result.word == "knot" else "step limit reached"
+                done = "knot tied" if result.word == StepOutcome.KNOT else "step limit reached"
                 self._claim_next()
                 self.message = f"episode done ({done}); next start loaded"
             else:
@@ -507,8 +514,8 @@ class _ScanAhead:
 
 
 def _try_message(result: TryResult) -> str:
-    if result.word == "knot":
+    if result.word == StepOutcome.KNOT:
         return f"{result.demo_key} tied the knot: Y to accept"
-    if result.word == "progressed":
+    if result.word == StepOutcome.PROGRESSED:
         return f"{result.demo_key} executed: Y accept, N reject, F dead end"
     return f"{result.demo_key}: {result.word}; N to reject or F to mark a dead end"

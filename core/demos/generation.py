@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from knotlab.core.demos.library import DemoLibrary, DemoSegment, segment_key
 from knotlab.core.errors import InvalidInputError
@@ -34,6 +35,9 @@ from knotlab.core.parallel import PerProcess
 from knotlab.core.seeds import child_seed
 from knotlab.core.tasks import DEFAULT_TASK, get_task
 from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel, observe
+
+if TYPE_CHECKING:  # the simulator imports pybullet: built in the workers only
+    from knotlab.core.world.sim import RopeWorld
 
 GENERATOR = "knotlab.core.demogen/1"
 
@@ -88,7 +92,7 @@ class CandidateResult:
     restarts: int = 0
 
 
-def _new_world():
+def _new_world() -> RopeWorld:
     from knotlab.core.world.sim import RopeWorld
 
     return RopeWorld()

@@ -8,9 +8,10 @@ regenerated alone. Shape suffixes: k = rope nodes, t = tasks.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,6 +21,9 @@ from knotlab.core.hashing import ContentHash
 from knotlab.core.npzfile import read_npz, write_npz
 from knotlab.core.parallel import PerProcess
 from knotlab.core.seeds import child_seed, derive_seed
+
+if TYPE_CHECKING:  # the simulator imports pybullet: built in the workers only
+    from knotlab.core.world.sim import RopeWorld
 
 TASKSET_FORMAT = "knotlab-task-set"
 TASKSET_VERSION = 1
@@ -67,7 +71,7 @@ class TaskSet:
     def __getitem__(self, i: int) -> RopeTask:
         return self.tasks[i]
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[RopeTask]:
         return iter(self.tasks)
 
     @property
@@ -189,7 +193,7 @@ class _TaskJob:
     settle_seconds: float
 
 
-def _new_world():
+def _new_world() -> RopeWorld:
     from knotlab.core.world.sim import RopeWorld
 
     return RopeWorld()

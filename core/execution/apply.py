@@ -18,9 +18,10 @@ from knotlab.core.failures import FailureKind
 from knotlab.core.registration.planner import DemoTransferer, TransferPlan
 from knotlab.core.tasks import Task, get_task
 from knotlab.core.world.frames import FrameRecorder
+from knotlab.core.world.protocol import World
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
-    from knotlab.core.world.sim import ExecutionResult, RopeWorld, SimSnapshot
+    from knotlab.core.world.sim import ExecutionResult, SimSnapshot
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,7 +66,7 @@ def task_of(transferer: DemoTransferer) -> Task:
 
 
 def apply_demo(
-    world: RopeWorld,
+    world: World,
     transferer: DemoTransferer,
     cloud_n3: np.ndarray,
     demo_index: int,

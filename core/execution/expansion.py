@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -26,13 +26,17 @@ from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores
+from knotlab.core.world.protocol import World
+
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import SimSnapshot
 
 
 @dataclass(frozen=True, eq=False)
 class ExpansionJob:
     """Simulate demo ``action`` from ``snapshot`` (observed as ``cloud_n3``); value the child?"""
 
-    snapshot: object  # SimSnapshot
+    snapshot: SimSnapshot
     cloud_n3: np.ndarray
     action: int
     value_child: bool
@@ -53,7 +57,7 @@ def child_is_valued(outcome: ActionOutcome) -> bool:
 
 
 def value_child(
-    world, featurizer: LibraryFeaturizer, model: QModel
+    world: World, featurizer: LibraryFeaturizer, model: QModel
 ) -> tuple[np.ndarray, np.ndarray]:
     """The world's current rope observed, and every demo's Q there (-inf where unusable)."""
     cloud = featurizer.observe(world)
@@ -62,7 +66,7 @@ def value_child(
 
 
 def expand(
-    world,
+    world: World,
     transferer: DemoTransferer,
     featurizer: LibraryFeaturizer,
     model: QModel,
@@ -92,7 +96,7 @@ class ExpansionRunner(Protocol):
 
     def run(
         self,
-        world,
+        world: World,
         transferer: DemoTransferer,
         featurizer: LibraryFeaturizer,
         model: QModel,
@@ -115,7 +119,7 @@ class SequentialRunner:
 
     def run(
         self,
-        world,
+        world: World,
         transferer: DemoTransferer,
         featurizer: LibraryFeaturizer,
         model: QModel,

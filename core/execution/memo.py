@@ -19,12 +19,13 @@ from knotlab.core.arrays import cloud_digest
 from knotlab.core.execution.apply import ActionOutcome, apply_demo
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.tasks import Task
+from knotlab.core.world.protocol import World
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
-    from knotlab.core.world.sim import RopeWorld
+    from knotlab.core.world.sim import SimSnapshot
 
 
-def snapshot_digest(snapshot) -> str:
+def snapshot_digest(snapshot: SimSnapshot) -> str:
     """sha1 of a simulator snapshot's arrays and time: equal digests, the same world state."""
     digest = hashlib.sha1(repr(snapshot.sim_time).encode())
     for name in ("positions_l3", "quaternions_l4", "linear_velocities_l3", "angular_velocities_l3"):
@@ -47,7 +48,9 @@ class OutcomeMemo:
         self.hits = 0
 
     @staticmethod
-    def key(world, transferer, snapshot_key: str, cloud_key: str, action: int) -> tuple:
+    def key(
+        world: World, transferer: DemoTransferer, snapshot_key: str, cloud_key: str, action: int
+    ) -> tuple:
         """The memo key of one expansion."""
         return (id(world), id(transferer), snapshot_key, cloud_key, int(action))
 
@@ -69,7 +72,7 @@ class OutcomeMemo:
 
 def execute_with_memo(
     memo: OutcomeMemo | None,
-    world: RopeWorld,
+    world: World,
     transferer: DemoTransferer,
     cloud_n3: np.ndarray,
     action: int,

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Literal, TextIO, get_args
 
 import numpy as np
 
@@ -63,7 +63,8 @@ LINE_IDENTITY_KEY = "run"  # the key under which each outcome line records its r
 RESULTS_FILE = "results.json"
 CHART_FILE = "table1.png"
 Z_95 = 1.959963984540054
-ENGINES: tuple[str, ...] = ("local", "ray")
+Engine = Literal["local", "ray"]  # where episodes run: worker processes here, or Ray actors
+ENGINES: tuple[Engine, ...] = get_args(Engine)
 # Outcomes one task's policies may share: ~70 simulations a task on the main set (measured,
 # bench/sharing.py), each a few hundred kB with its trajectory, so a task never evicts.
 SHARED_MEMO_SIZE = 512
@@ -266,14 +267,14 @@ class OutcomeLog:
                 return
             fh.truncate(data.rfind(b"\n") + 1)
 
-    def open(self):
+    def open(self) -> TextIO:
         """A line-appending handle (repairs the tail first)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._repair_tail()
         return open(self.path, "a", encoding="utf-8")
 
     @staticmethod
-    def append(fh, record: dict) -> None:
+    def append(fh: TextIO, record: dict) -> None:
         """Write one record as a line, flushed and fsynced (survives a crash right after)."""
         fh.write(json.dumps(record, allow_nan=True) + "\n")
         fh.flush()
@@ -483,7 +484,7 @@ def _run_ray(
     queue = list(reversed(units))
     pending: dict = {}
 
-    def submit(actor) -> None:
+    def submit(actor: Any) -> None:  # a Ray actor handle
         if queue:
             unit = queue.pop()
             ref = actor.run_group.remote(unit) if share else actor.run.remote(unit[0])
@@ -723,7 +724,7 @@ def run_bench(
     max_steps: int | None = None,
     first: TaskLimits = None,
     workers: int | None = None,
-    engine: str = "local",
+    engine: Engine = "local",
     ray_address: str | None = None,
     progress: bool = True,
     arguments: dict | None = None,

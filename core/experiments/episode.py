@@ -24,11 +24,11 @@ from knotlab.core.failures import FailureKind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.decision import StepContext
+from knotlab.core.world.protocol import World
 from knotlab.core.world.trajectory import GripperTrajectory
 
-if TYPE_CHECKING:  # the agent builds episodes; the simulator imports pybullet
+if TYPE_CHECKING:  # the agent builds episodes
     from knotlab.core.agent import Agent
-    from knotlab.core.world.sim import RopeWorld
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,9 @@ class EpisodeOutcome:
     nodes_before: tuple[str | None, ...] = ()
 
     @classmethod
-    def errored(cls, task_id: str, policy: str, message: str, wall_s: float = 0.0):
+    def errored(
+        cls, task_id: str, policy: str, message: str, wall_s: float = 0.0
+    ) -> EpisodeOutcome:
         """The row of an episode that crashed before it could record a step."""
         return cls(task_id, policy, False, 0, FailureKind.ERROR, message, wall_s)
 
@@ -182,7 +184,7 @@ def _classify(outcome: ActionOutcome) -> StepOutcome | FailureKind:
 
 def run_episode(
     agent: Agent,
-    world: RopeWorld,
+    world: World,
     start_nodes_k3: np.ndarray,
     *,
     task_id: str = "task",

@@ -20,6 +20,7 @@ within the remaining steps, decided by the same search from the outcome (depth-f
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -28,10 +29,13 @@ import numpy as np
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
+from knotlab.core.world.protocol import World
 
 if TYPE_CHECKING:  # the agent and the simulator: only for the checker
     from knotlab.core.agent import Agent
-    from knotlab.core.world.sim import RopeWorld
+    from knotlab.core.demos.tasks import RopeTask
+    from knotlab.core.execution.apply import ActionOutcome
+    from knotlab.core.world.sim import RopeWorld, SimSnapshot
 
 
 @dataclass(frozen=True)
@@ -56,14 +60,21 @@ class OracleResult:
 
 @dataclass
 class _Search:
-    world: RopeWorld
+    world: World
     agent: Agent
     params: OracleParams
     sims: int = 0
     exhausted: bool = False
     dead_ends: list[DeadEndState] = field(default_factory=list)
 
-    def solve(self, snapshot, cloud_n3, nodes_k3, stage: int, steps_left: int):
+    def solve(
+        self,
+        snapshot: SimSnapshot,
+        cloud_n3: np.ndarray,
+        nodes_k3: np.ndarray,
+        stage: int,
+        steps_left: int,
+    ) -> tuple[list[LabelledStep] | None, bool]:
         """Steps to a knot within ``steps_left`` from this state, or None; and if exhaustive."""
         scan = self.agent.scan(cloud_n3)
         cost = np.where(scan.ok_a, scan.nn_cost_a, np.inf)
@@ -107,7 +118,9 @@ class _Search:
             complete &= exhaustive
         return None, complete
 
-    def _descend(self, outcome, steps_left: int):
+    def _descend(
+        self, outcome: ActionOutcome, steps_left: int
+    ) -> tuple[list[LabelledStep] | None, bool]:
         self.world.restore(outcome.snapshot_after)
         child_cloud = self.agent.observe(self.world)
         nodes = outcome.nodes_after_k3
@@ -121,7 +134,7 @@ class _Search:
 
 def label_task(
     agent: Agent,
-    world: RopeWorld,
+    world: World,
     start_nodes_k3: np.ndarray,
     *,
     task_id: str,
@@ -198,12 +211,12 @@ def _label_job(job: _LabelJob) -> OracleResult:
 
 def oracle_label_tasks(
     library_path: str,
-    tasks,
+    tasks: Iterable[RopeTask],
     *,
     params: OracleParams = OracleParams(),
     workers: int | None = None,
     progress: bool = True,
-):
+) -> Iterator[OracleResult]:
     """Yield an OracleResult per task (in completion order), labelling over local processes."""
     from knotlab.core.parallel import imap_processes
 

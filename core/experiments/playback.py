@@ -18,6 +18,8 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -78,17 +80,31 @@ class Replay:
 # ----------------------------------------------------------------------------- loading
 
 
-def load_matching_library(candidates: Sequence[str | Path | None], library_hash: str):
+def load_matching_library(
+    candidates: Sequence[str | Path | None], library_hash: str
+) -> DemoLibrary:
     """The first candidate library file whose content hash is ``library_hash``."""
     return _first_matching(candidates, library_hash, DemoLibrary.load, "demo library")
 
 
-def load_matching_task_set(candidates: Sequence[str | Path | None], task_set_hash: str):
+def load_matching_task_set(candidates: Sequence[str | Path | None], task_set_hash: str) -> TaskSet:
     """The first candidate task-set file whose content hash is ``task_set_hash``."""
     return _first_matching(candidates, task_set_hash, TaskSet.load, "task set")
 
 
-def _first_matching(candidates, wanted: str, load: Callable, what: str):
+class _Hashed(Protocol):
+    def content_hash(self) -> str: ...
+
+
+_H = TypeVar("_H", bound=_Hashed)
+
+
+def _first_matching(
+    candidates: Sequence[str | Path | None],
+    wanted: str,
+    load: Callable[[str | Path], _H],
+    what: str,
+) -> _H:
     tried = []
     for c in candidates:
         if c is None or str(c) in tried:
@@ -298,7 +314,7 @@ def render_frames(episode: PlaybackEpisode, replay: Replay, *, size: int = 400) 
     return images
 
 
-def _mp4_writer():
+def _mp4_writer() -> ModuleType:
     try:
         import imageio_ffmpeg
     except ImportError:

@@ -63,7 +63,17 @@ _padded = njit(cache=True, nogil=True)(padded_length)  # the same rule inside th
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no cover - compiled
+def _exp_neg_row(  # pragma: no cover - compiled
+    s: np.ndarray,
+    p: np.ndarray,
+    i: int,
+    bits: np.ndarray,
+    bits_f: np.ndarray,
+    e_bias: np.floating,
+    e_shift: np.floating,
+    cst: np.ndarray,
+    m: int,
+) -> None:
     """p[i, j] = exp(-min(s[j], cap)) for j < m, s >= 0; 2^-k built in `bits` (a view: bits_f).
 
     e_bias and e_shift are the exponent bias and 2^(mantissa bits), both in the RPM dtype.
@@ -97,7 +107,16 @@ def _exp_neg_row(s, p, i, bits, bits_f, e_bias, e_shift, cst, m):  # pragma: no 
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _distance_row(fx, xs, ys, gy, srow, i, m, inv2t):  # pragma: no cover - compiled
+def _distance_row(  # pragma: no cover - compiled
+    fx: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    gy: np.ndarray,
+    srow: np.ndarray,
+    i: int,
+    m: int,
+    inv2t: np.floating,
+) -> None:
     """srow[j] = (|f(x_i) - y_j| + |x_i - g(y_j)|) / 2T for j < m (the affinity's exponent).
 
     A function of its own so that LLVM vectorises it: inside the large kernel the same loop was
@@ -118,7 +137,9 @@ def _distance_row(fx, xs, ys, gy, srow, i, m, inv2t):  # pragma: no cover - comp
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _add_weighted_rows(mat, w, out, rows, length):  # pragma: no cover - compiled
+def _add_weighted_rows(  # pragma: no cover - compiled
+    mat: np.ndarray, w: np.ndarray, out: np.ndarray, rows: int, length: int
+) -> None:
     """out[x] += mat[r, x] * w[r] for r = 0 .. rows-1 in that order, x < length.
 
     Four rows per pass over `out`, each written as (((out + a) + b) + c) + d: the same sums in
@@ -140,7 +161,17 @@ def _add_weighted_rows(mat, w, out, rows, length):  # pragma: no cover - compile
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _add_weighted_rows3(mat, w0v, w1v, w2v, o0, o1, o2, rows, length):  # pragma: no cover
+def _add_weighted_rows3(  # pragma: no cover
+    mat: np.ndarray,
+    w0v: np.ndarray,
+    w1v: np.ndarray,
+    w2v: np.ndarray,
+    o0: np.ndarray,
+    o1: np.ndarray,
+    o2: np.ndarray,
+    rows: int,
+    length: int,
+) -> None:
     """`_add_weighted_rows` for three (weights, out) pairs in one pass over `mat`.
 
     Each out gets exactly the sums, in exactly the order, of its own `_add_weighted_rows`
@@ -170,7 +201,19 @@ def _add_weighted_rows3(mat, w0v, w1v, w2v, o0, o1, o2, rows, length):  # pragma
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _add_weighted_rows4(mat, w0v, w1v, w2v, w3v, o0, o1, o2, o3, rows, length):  # pragma: no cover
+def _add_weighted_rows4(  # pragma: no cover
+    mat: np.ndarray,
+    w0v: np.ndarray,
+    w1v: np.ndarray,
+    w2v: np.ndarray,
+    w3v: np.ndarray,
+    o0: np.ndarray,
+    o1: np.ndarray,
+    o2: np.ndarray,
+    o3: np.ndarray,
+    rows: int,
+    length: int,
+) -> None:
     """`_add_weighted_rows3` for four (weights, out) pairs (bit-identical to four calls).
 
     Written out again rather than looping over outputs: with the outputs unrolled LLVM
@@ -204,48 +247,48 @@ def _add_weighted_rows4(mat, w0v, w1v, w2v, w3v, o0, o1, o2, o3, rows, length): 
 
 @njit(cache=True, nogil=True, fastmath=False)
 def rpm_kernel(
-    idx,
-    x_an3,
-    n_a,
-    g_ank,
-    gt_akn,
-    mu_ak,
-    h_ak3,
-    y_m3,
-    g_y,
-    gt_y,
-    mu_y,
-    h_y,
-    lam_i,
-    inv2t_i,
-    cst,
-    bits,
-    bits_f,
-    e_bias,
-    e_shift,
-    a_out,
-    b_out_b,
-    corner_b,
-    rule,
-    sinkhorn_iters,
-    stop_after,
-    mu_a64,
-    theta_a64,
-    mu_y64,
-    theta_y64,
-    scale,
-    e_f,
-    e_g,
-    costs,
-    corr,
-    failed,
-    first_only,
-    pre_xhat,
-    pre_yhat,
-    pre_wf,
-    pre_wg,
-    pre_done,
-):  # pragma: no cover - compiled
+    idx: np.ndarray,
+    x_an3: np.ndarray,
+    n_a: np.ndarray,
+    g_ank: np.ndarray,
+    gt_akn: np.ndarray,
+    mu_ak: np.ndarray,
+    h_ak3: np.ndarray,
+    y_m3: np.ndarray,
+    g_y: np.ndarray,
+    gt_y: np.ndarray,
+    mu_y: np.ndarray,
+    h_y: np.ndarray,
+    lam_i: np.ndarray,
+    inv2t_i: np.ndarray,
+    cst: np.ndarray,
+    bits: np.ndarray,
+    bits_f: np.ndarray,
+    e_bias: np.floating,
+    e_shift: np.floating,
+    a_out: np.ndarray,
+    b_out_b: np.ndarray,
+    corner_b: np.ndarray,
+    rule: int,
+    sinkhorn_iters: int,
+    stop_after: int,
+    mu_a64: np.ndarray,
+    theta_a64: np.ndarray,
+    mu_y64: np.ndarray,
+    theta_y64: np.ndarray,
+    scale: float,
+    e_f: np.ndarray,
+    e_g: np.ndarray,
+    costs: np.ndarray,
+    corr: np.ndarray,
+    failed: np.ndarray,
+    first_only: bool,
+    pre_xhat: np.ndarray,
+    pre_yhat: np.ndarray,
+    pre_wf: np.ndarray,
+    pre_wg: np.ndarray,
+    pre_done: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """Bidirectional TPS-RPM for every demo b of a chunk against the scene (see `rpm_batch`).
 
     The first iteration's affinity, Sinkhorn and targets do not read the scene's TPS basis, so
@@ -446,7 +489,15 @@ def rpm_kernel(
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _match_costs(w3, hat3, sums4, w, weighted, tiny, n):  # pragma: no cover - compiled
+def _match_costs(  # pragma: no cover - compiled
+    w3: np.ndarray,
+    hat3: np.ndarray,
+    sums4: np.ndarray,
+    w: np.ndarray,
+    weighted: bool,
+    tiny: np.floating,
+    n: int,
+) -> tuple[float, float, float]:
     """(mapping cost, inlier mass, mean residual) of one direction, in float64.
 
     w3: warped points, hat3: their targets, sums4: the weighted sums behind the targets (row 3 the
@@ -475,7 +526,9 @@ def _match_costs(w3, hat3, sums4, w, weighted, tiny, n):  # pragma: no cover - c
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _spline_costs(mu_k, theta_pk, e_3k, k):  # pragma: no cover - compiled
+def _spline_costs(  # pragma: no cover - compiled
+    mu_k: np.ndarray, theta_pk: np.ndarray, e_3k: np.ndarray, k: int
+) -> tuple[float, float]:
     """(bending energy sum mu_q |e_q|^2, |B - I|_F) of one spline, in float64."""
     bend = 0.0
     for q in range(k):
@@ -494,7 +547,17 @@ def _spline_costs(mu_k, theta_pk, e_3k, k):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragma: no cover
+def _fit_unweighted(  # pragma: no cover
+    g_nk: np.ndarray,
+    mu_k: np.ndarray,
+    h_k3: np.ndarray,
+    target_3n: np.ndarray,
+    lam: np.floating,
+    one: np.floating,
+    e_3k: np.ndarray,
+    n: int,
+    k: int,
+) -> None:
     """e = (G^T x^ + h) / (1 + lambda mu), e stored (3, k); vectorised over k.
 
     G's rows and e are VECTOR_PAD-padded (zeros beyond k in G): the padding of e stays zero.
@@ -512,7 +575,9 @@ def _fit_unweighted(g_nk, mu_k, h_k3, target_3n, lam, one, e_3k, n, k):  # pragm
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _apply(gt_kn, e_3k, out_3n, n, k):  # pragma: no cover - compiled
+def _apply(  # pragma: no cover - compiled
+    gt_kn: np.ndarray, e_3k: np.ndarray, out_3n: np.ndarray, n: int, k: int
+) -> None:
     """out = G e, out stored (3, n); vectorised over n (a padded length: G^T's rows are)."""
     out_3n[:, :n] = 0
     # out[d, i] = sum_q G[i, q] e[d, q], q ascending
@@ -521,7 +586,15 @@ def _apply(gt_kn, e_3k, out_3n, n, k):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _fit_weighted(g_nk, mu_k, h_k3, target_3n, w_n, lam, e_3k):  # pragma: no cover
+def _fit_weighted(  # pragma: no cover
+    g_nk: np.ndarray,
+    mu_k: np.ndarray,
+    h_k3: np.ndarray,
+    target_3n: np.ndarray,
+    w_n: np.ndarray,
+    lam: np.floating,
+    e_3k: np.ndarray,
+) -> bool:
     """Solve (I + lambda diag mu - G^T diag(1-w) G) e = G^T diag(w) x^ + h; False if singular."""
     n, k = g_nk.shape
     g = np.ascontiguousarray(g_nk)

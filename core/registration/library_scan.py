@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import fields
 from pathlib import Path
+from typing import TypedDict, Unpack
 
 import numpy as np
 
@@ -149,7 +150,10 @@ class LibraryRegistrar:
         self._pool_lock = threading.Lock()
 
     def prepare(
-        self, demo_clouds: Sequence[np.ndarray], key: str | None = None, params=None
+        self,
+        demo_clouds: Sequence[np.ndarray],
+        key: str | None = None,
+        params: RegistrationParams | None = None,
     ) -> CloudSide:
         """Demo-side precomputation (normalise, factorise, pad), from cache when possible."""
         params = params or self.params
@@ -242,11 +246,19 @@ class LibraryRegistrar:
         return CloudSide(clouds=clouds, reason_a=reasons, **arrays)
 
 
+class _ScanOptions(TypedDict, total=False):
+    """The keyword arguments `scan_library` passes on to `LibraryRegistrar.scan`."""
+
+    key: str | None
+    keep_correspondence: bool
+    timings: dict[str, float] | None
+
+
 def scan_library(
     scene_cloud: np.ndarray,
     demo_clouds: Sequence[np.ndarray],
     params: RegistrationParams = SCAN,
-    **kwargs,
+    **kwargs: Unpack[_ScanOptions],
 ) -> ScanResult:
     """One-off scan without a cache (see LibraryRegistrar for repeated queries)."""
     return LibraryRegistrar(params).scan(scene_cloud, demo_clouds, **kwargs)

@@ -63,7 +63,12 @@ from knotlab.core.registration.sides import CloudSide, one_demo_side, scene_side
 
 
 def _solve_weighted(
-    g_bnk: np.ndarray, mu_bk: np.ndarray, h_bk3: np.ndarray, target_bn3, w_bn, lam: float
+    g_bnk: np.ndarray,
+    mu_bk: np.ndarray,
+    h_bk3: np.ndarray,
+    target_bn3: np.ndarray,
+    w_bn: np.ndarray,
+    lam: float,
 ) -> tuple[np.ndarray, dict[int, str]]:
     """Batched (I + lambda diag mu - G^T diag(1-w) G) e = G^T diag(w) y^ + h."""
     k = g_bnk.shape[-1]

@@ -9,10 +9,17 @@ unpcklps / shufps / vperm2f128 on x86). A copy, so the values are exactly the in
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, TypeGuard
+
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+if TYPE_CHECKING:
+    from numba.core.base import BaseContext
+    from numba.core.typing.templates import Signature
 
 BLOCK = 8  # rows and columns of one transposed block
 
@@ -26,7 +33,7 @@ _HALF_LO = (0, 1, 2, 3, 8, 9, 10, 11)
 _HALF_HI = (4, 5, 6, 7, 12, 13, 14, 15)
 
 
-def _is_float_matrix(ty: types.Type) -> bool:
+def _is_float_matrix(ty: types.Type) -> TypeGuard[types.Array]:
     return (
         isinstance(ty, types.Array)
         and ty.ndim == 2
@@ -36,7 +43,9 @@ def _is_float_matrix(ty: types.Type) -> bool:
 
 
 @intrinsic
-def transpose_block(typingctx, src, i0, j0, dst):
+def transpose_block(
+    typingctx: object, src: types.Type, i0: types.Type, j0: types.Type, dst: types.Type
+) -> tuple[Signature, Callable[..., ir.Value]] | None:
     """dst[j0 + c, i0 + r] = src[i0 + r, j0 + c] for r, c < BLOCK (no bounds checks).
 
     The caller guarantees the block lies inside both arrays (C-contiguous, same float dtype).
@@ -47,7 +56,12 @@ def transpose_block(typingctx, src, i0, j0, dst):
         return None
     sig = types.void(src, i0, j0, dst)
 
-    def codegen(context, builder, signature, args):
+    def codegen(
+        context: BaseContext,
+        builder: ir.IRBuilder,
+        signature: Signature,
+        args: Sequence[ir.Value],
+    ) -> ir.Value:
         src_val, i_val, j_val, dst_val = args
         src_ty, i_ty, j_ty, dst_ty = signature.args
         vec = ir.VectorType(context.get_value_type(src_ty.dtype), BLOCK)
@@ -56,7 +70,9 @@ def transpose_block(typingctx, src, i0, j0, dst):
         row0 = context.cast(builder, i_val, i_ty, types.int64)
         col0 = context.cast(builder, j_val, j_ty, types.int64)
 
-        def vector_at(arr_ty, arr_val, row, offset, col):
+        def vector_at(
+            arr_ty: types.Array, arr_val: ir.Value, row: ir.Value, offset: int, col: ir.Value
+        ) -> ir.Value:
             ary = context.make_array(arr_ty)(context, builder, arr_val)
             shape = cgutils.unpack_tuple(builder, ary.shape, 2)
             strides = cgutils.unpack_tuple(builder, ary.strides, 2)
@@ -66,7 +82,7 @@ def transpose_block(typingctx, src, i0, j0, dst):
             )
             return builder.bitcast(ptr, vec.as_pointer())
 
-        def shuffle(a, b, mask):
+        def shuffle(a: ir.Value, b: ir.Value, mask: tuple[int, ...]) -> ir.Value:
             return builder.shuffle_vector(
                 a, b, ir.Constant(ir.VectorType(ir.IntType(32), BLOCK), list(mask))
             )

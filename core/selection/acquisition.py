@@ -16,10 +16,10 @@ Shape suffix: a = demos (actions).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -28,6 +28,10 @@ from knotlab.core.registration import ScanResult
 from knotlab.core.seeds import text_uniform
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
+
+if TYPE_CHECKING:  # annotations only
+    from knotlab.core.demos.tasks import RopeTask
+    from knotlab.core.selection.features import LibraryFeaturizer
 
 RankBy = Literal["combined", "margin", "disagreement"]
 RANK_BY: tuple[str, ...] = ("combined", "margin", "disagreement")
@@ -118,7 +122,11 @@ def score_scan(
 
 
 def score_clouds(
-    clouds: Mapping[str, np.ndarray], featurizer, model: QModel, *, progress: bool = True
+    clouds: Mapping[str, np.ndarray],
+    featurizer: LibraryFeaturizer,
+    model: QModel,
+    *,
+    progress: bool = True,
 ) -> list[AcquisitionScore]:
     """`score_scan` of every keyed cloud (one library scan each), with a progress bar."""
     from tqdm import tqdm
@@ -131,7 +139,9 @@ def score_clouds(
     return out
 
 
-def task_start_clouds(tasks, featurizer, *, progress: bool = True) -> dict[str, np.ndarray]:
+def task_start_clouds(
+    tasks: Iterable[RopeTask], featurizer: LibraryFeaturizer, *, progress: bool = True
+) -> dict[str, np.ndarray]:
     """The observed cloud of every task's start state, keyed by task id (one world reset each)."""
     from tqdm import tqdm
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,16 +18,14 @@ from knotlab.core.execution.memo import OutcomeMemo
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.features import LibraryFeaturizer
-
-if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
-    from knotlab.core.world.sim import RopeWorld
+from knotlab.core.world.protocol import World
 
 
 @dataclass
 class StepContext:
     """Everything a policy may look at to choose the next demo."""
 
-    world: RopeWorld
+    world: World
     cloud_n3: np.ndarray
     scan: ScanResult
     featurizer: LibraryFeaturizer

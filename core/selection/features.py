@@ -49,6 +49,7 @@ from knotlab.core.selection.feature_spec import FeatureSpec
 from knotlab.core.selection.landmarks import Landmarks
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.observation import ObservationModel, observe
+from knotlab.core.world.protocol import World
 
 FEATURE_SET = "knotlab-features-v1"
 _COSTS = ("c1_map", "c2_bend_f", "c3_bend_g")
@@ -192,6 +193,7 @@ class LibraryFeaturizer:
             self.landmarks.content_hash() if self.landmarks is not None else None,
             self.observation.value,
             self.rank_features,
+            task=library.task,  # written only when not the overhand knot: old hashes hold
         )
 
     @classmethod
@@ -234,7 +236,7 @@ class LibraryFeaturizer:
         """Row of ``demo_key`` in phi_ad."""
         return self.library.index_of(demo_key)
 
-    def observe(self, world, *, noise: float = 0.0, seed: int | None = None) -> np.ndarray:
+    def observe(self, world: World, *, noise: float = 0.0, seed: int | None = None) -> np.ndarray:
         """The scene cloud of ``world``'s rope under this library's observation model."""
         return observe(world, self.observation, noise=noise, seed=seed)
 

@@ -98,9 +98,7 @@ def sample_landmarks(
     """A seeded sample of labelled states and dead ends (the original's 50 + 20) from executions."""
     if n_labelled < 0 or n_dead_ends < 0:
         raise InvalidInputError("landmark counts must be >= 0")
-    labelled = [
-        s.cloud_n3 for e in executions for s in e.steps if s.outcome != StepOutcome.SKIPPED
-    ]
+    labelled = [s.cloud_n3 for e in executions for s in e.steps if s.outcome != StepOutcome.SKIPPED]
     dead = [d.cloud_n3 for e in executions for d in e.dead_ends]
     rng = np.random.default_rng(seed)
     pick_l = np.sort(rng.permutation(len(labelled))[:n_labelled])

@@ -6,8 +6,9 @@ Shape suffix: a = demos (actions).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,10 +27,13 @@ from knotlab.core.selection.decision import Decision, Policy, StepContext
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores
 
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import SimSnapshot
+
 
 @dataclass
 class _Node:
-    snapshot: object
+    snapshot: SimSnapshot
     cloud_n3: np.ndarray
     q_a: np.ndarray
     root_action: int  # -1 at the root
@@ -275,7 +279,16 @@ class LookaheadPolicy(Policy):
         )
 
     def _decide(
-        self, goal_action, root_q, backed, root_outcomes, expansions, t0, goal, reused=0, tree=()
+        self,
+        goal_action: int | None,
+        root_q: np.ndarray,
+        backed: dict[int, tuple[int, float]],
+        root_outcomes: dict[int, ActionOutcome],
+        expansions: int,
+        t0: float,
+        goal: bool,
+        reused: int = 0,
+        tree: Sequence[dict] = (),
     ) -> Decision:
         info = {
             "expansions": expansions,

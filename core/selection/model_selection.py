@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.stats import mannwhitneyu
@@ -37,6 +38,11 @@ from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import LabelledExecution
 from knotlab.core.selection.learner import LabelledState, MaxMarginQLearner, TrainingData
 from knotlab.core.selection.qmodel import QModel
+
+if TYPE_CHECKING:  # the featurizer pulls in registration (numba): imported where it is used
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.selection.features import LibraryFeaturizer
+    from knotlab.core.selection.landmarks import Landmarks
 
 
 class SelectBy(StrEnum):
@@ -110,7 +116,7 @@ def ranking_metrics(model: QModel, data: TrainingData) -> dict:
 # --------------------------------------------------------------- featurising (worker processes)
 
 
-def _build_featurizer(key: tuple):
+def _build_featurizer(key: tuple[DemoLibrary, Landmarks | None, bool]) -> LibraryFeaturizer:
     from knotlab.core.selection.features import LibraryFeaturizer
 
     library, landmarks, rank_features = key
@@ -120,7 +126,9 @@ def _build_featurizer(key: tuple):
 _FEATURIZER = PerProcess(_build_featurizer)  # this process's featurizer (set by the initializer)
 
 
-def _init_featurizer(library, landmarks=None, rank_features: bool = False) -> None:
+def _init_featurizer(
+    library: DemoLibrary, landmarks: Landmarks | None = None, rank_features: bool = False
+) -> None:
     _FEATURIZER.get((library, landmarks, rank_features))
 
 
@@ -136,11 +144,11 @@ def _featurize(execution: LabelledExecution) -> TrainingData | str:
 
 def featurize_executions(
     executions: Sequence[LabelledExecution],
-    library,
+    library: DemoLibrary,
     *,
     workers: int | None = None,
     progress: bool = True,
-    landmarks=None,
+    landmarks: Landmarks | None = None,
     rank_features: bool = False,
 ) -> tuple[list[TrainingData | None], list[str]]:
     """Per-execution training data (None where unusable) and the warnings about those."""
@@ -182,9 +190,9 @@ class FeatureCache:
     def featurize(
         self,
         executions: Sequence[LabelledExecution],
-        library,
+        library: DemoLibrary,
         *,
-        landmarks=None,
+        landmarks: Landmarks | None = None,
         workers: int | None = None,
         progress: bool = True,
         rank_features: bool = False,
@@ -276,7 +284,7 @@ class QModelSearch:
             raise InvalidInputError(f"landmark counts must be >= 0, got {self.landmarks}")
         self.select = SelectBy(self.select)
 
-    def fit(self, executions: Sequence[LabelledExecution], library) -> QModelSearch:
+    def fit(self, executions: Sequence[LabelledExecution], library: DemoLibrary) -> QModelSearch:
         """Split, featurise, fit every (C, D), choose and (optionally) refit; returns self."""
         from knotlab.core.selection.features import LibraryFeaturizer
         from knotlab.core.selection.landmarks import sample_landmarks

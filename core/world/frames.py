@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,7 +60,13 @@ class FrameRecorder:
         """Frame i as (time, nodes_k3, grippers_g3, closed_g)."""
         return self._t[i], self._nodes[i], self._grippers[i], self._closed[i]
 
-    def add(self, t: float, nodes_k3: np.ndarray, grippers_g3: np.ndarray, closed_g) -> None:
+    def add(
+        self,
+        t: float,
+        nodes_k3: np.ndarray,
+        grippers_g3: np.ndarray,
+        closed_g: Sequence[bool] | np.ndarray,
+    ) -> None:
         """Append one frame."""
         self._t.append(float(t))
         self._nodes.append(np.asarray(nodes_k3, dtype=np.float32))

@@ -37,6 +37,7 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.voxels import voxel_groups
 
 if TYPE_CHECKING:  # the simulator imports this module (and pybullet): only for the checker
+    from knotlab.core.world.protocol import World
     from knotlab.core.world.sim import SimSnapshot
 
 
@@ -143,7 +144,7 @@ def centreline_points(nodes_k3: np.ndarray) -> np.ndarray:
 
 
 def observe(
-    world,
+    world: World,
     model: ObservationModel = DEFAULT_OBSERVATION,
     *,
     noise: float = 0.0,

@@ -20,7 +20,9 @@ import itertools
 import math
 import time
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
@@ -32,7 +34,7 @@ from knotlab.core.world.rope import as_nodes, resample_by_arc_length, rope_lengt
 from knotlab.core.world.trajectory import GRIPPERS, GripperTrajectory
 
 
-def _import_pybullet_quietly():
+def _import_pybullet_quietly() -> ModuleType:
     """Import pybullet with its C-level "build time" banner sent to /dev/null.
 
     The banner is printed by the extension's init straight to the process's stdout/stderr file
@@ -550,7 +552,13 @@ class RopeWorld:
         )
         return link, cons, centre - point_3
 
-    def _record(self, rec: FrameRecorder, t0: float, grippers_g3, closed_g) -> None:
+    def _record(
+        self,
+        rec: FrameRecorder,
+        t0: float,
+        grippers_g3: np.ndarray,
+        closed_g: Sequence[bool] | np.ndarray,
+    ) -> None:
         """Append the rope's current nodes (read from PyBullet) and the grippers to ``rec``."""
         cid = self._client
         poses = [p.getBasePositionAndOrientation(b, physicsClientId=cid) for b in self._links]

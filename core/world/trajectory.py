@@ -93,7 +93,9 @@ class GripperTrajectory:
         """Indices of grippers that close at some waypoint (the others stay open)."""
         return tuple(int(g) for g in np.flatnonzero(self.closed_gt.any(axis=1)))
 
-    def with_positions(self, positions_gt3: np.ndarray, rotations_gt33: np.ndarray):
+    def with_positions(
+        self, positions_gt3: np.ndarray, rotations_gt33: np.ndarray
+    ) -> GripperTrajectory:
         """A copy with new positions and rotations, same times and closed flags."""
         return GripperTrajectory(self.times_t, positions_gt3, rotations_gt33, self.closed_gt)
 

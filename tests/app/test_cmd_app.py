@@ -89,6 +89,7 @@ def test_app_serves_the_page_and_stops_cleanly_on_ctrl_c(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["k.db"]  # nothing else written
 
 
+@pytest.mark.slow
 def test_a_non_loopback_host_warns_that_anyone_can_label(tmp_path):
     proc = _serve(tmp_path, "--host", "0.0.0.0")
     try:

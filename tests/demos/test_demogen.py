@@ -18,6 +18,7 @@ def small(tmp_path_factory):
     return report, path
 
 
+@pytest.mark.slow
 def test_small_library_has_all_three_steps_of_successful_demos(small):
     report, path = small
     lib = DemoLibrary.load(path)

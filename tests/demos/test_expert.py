@@ -69,6 +69,7 @@ def test_expert_ties_an_overhand_knot_with_stage_checks(world, seed, chirality):
         assert np.array_equal(a.post_nodes_k3, b.pre_nodes_k3)
 
 
+@pytest.mark.slow
 def test_expert_steps_replay_exactly(world):
     start = sample_start_rope(np.random.default_rng(1), bend_amplitude=0.03)
     run = run_expert(world, start, ExpertStyle(), seed=1)

@@ -297,6 +297,7 @@ def test_rerun_with_different_defining_arguments_is_refused(
     assert (out / "outcomes.jsonl").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_rerun_with_another_model_or_library_is_refused(first_run, files, tmp_path, capsys):
     out = tmp_path / "out"
     shutil.copytree(first_run["out"], out)
@@ -341,6 +342,7 @@ def test_unknown_policy_is_refused_before_any_work(files, tmp_path, capsys):
     assert "unknown policy" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_local_process_pool_runs_the_same_jobs(files, tmp_path, capsys):
     out = tmp_path / "out"
     args = _bench_args(files, out, policies="nn")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from knotlab.core.selection import model_selection
 from knotlab.core.selection.model_selection import FeatureCache, QModelSearch
@@ -16,6 +17,7 @@ def _search(cache: FeatureCache) -> QModelSearch:
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_a_cached_refit_featurises_only_new_executions_and_fits_the_same(monkeypatch) -> None:
     executions, library = mini_executions(3), mini_library(3)
     cache = FeatureCache()

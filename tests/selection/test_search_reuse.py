@@ -44,6 +44,7 @@ def test_a_state_scanned_lately_is_not_scanned_again(lib, world, featurizer):
     assert featurizer.scan(moved) is not first  # a different state is scanned
 
 
+@pytest.mark.slow
 def test_a_repeated_search_reuses_every_expansion_and_decides_the_same(
     lib, world, featurizer, transferer
 ):

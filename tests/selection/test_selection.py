@@ -100,6 +100,7 @@ def test_lookahead_finds_the_knot_and_restores_the_world(world, lib, featurizer,
     assert world.snapshot().equals(before)  # the search leaves the world where it found it
 
 
+@pytest.mark.slow
 def test_lookahead_on_the_last_step_values_only_knots(world, lib, featurizer, transferer):
     nodes = lib[lib.index_of("s000-t0")].pre_nodes_k3  # a start: no knot in one action
     world.reset(nodes)

@@ -67,6 +67,7 @@ def test_read_tries_names_a_bad_line(tmp_path) -> None:
         read_tries(tmp_path / "missing.jsonl")
 
 
+@pytest.mark.slow
 def test_tries_are_simulated_from_the_labelled_rope_and_repeat_exactly() -> None:
     lib = mini_library(2)
     ex = mini_executions(2)[0]

@@ -262,6 +262,7 @@ def _knot_sequence_outcomes(gripper: GripperParams) -> tuple[list, list[int], np
         return crossings, settle, world.rope_nodes()
 
 
+@pytest.mark.slow
 def test_settling_until_at_rest_ends_like_the_fixed_time_settle() -> None:
     """The early-stopping settle against the full 1 s (rest_speed 0: never at rest), on outcomes.
 

@@ -52,6 +52,7 @@ from knotlab.core.seeds import generator
 from knotlab.core.tasks.overhand.knot_sequence import pick_place, single_gripper_trajectory
 from knotlab.core.tasks.overhand.stages import Stage, stage_of_code
 from knotlab.core.world.knot import analyse_knot
+from knotlab.core.world.protocol import World
 from knotlab.core.world.rope import resample_by_arc_length, segment_crossings_xy
 from knotlab.core.world.trajectory import GripperTrajectory
 
@@ -340,7 +341,9 @@ class DemoRun:
     failures_by_step: tuple[int, ...] = (0, 0, 0)  # rejected tries of each step
 
 
-def _plan(step: int, nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame | None):
+def _plan(
+    step: int, nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame | None
+) -> GripperTrajectory:
     if step == 0:
         return plan_loop(nodes_k3, style)
     if frame is None:
@@ -350,7 +353,9 @@ def _plan(step: int, nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame 
     return plan_pull_tail(nodes_k3, style, frame)
 
 
-def _try_step(world, step, pre, style, frame):
+def _try_step(
+    world: World, step: int, pre: np.ndarray, style: ExpertStyle, frame: LoopFrame | None
+) -> tuple[GripperTrajectory, np.ndarray, str, bool, LoopFrame | None] | None:
     """Execute one planned step from ``reset(pre)``; (post, code, ok, frame) or None."""
     world.reset(pre)
     try:
@@ -375,7 +380,7 @@ def _try_step(world, step, pre, style, frame):
 
 
 def run_expert(
-    world,
+    world: World,
     start_nodes_k3: np.ndarray,
     style: ExpertStyle,
     seed: int = 0,
