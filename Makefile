@@ -1,6 +1,6 @@
 # knotlab: `make run` sets up and runs the main job; `make test` sets up and passes the tests
 # (all of them: CI); `make check` is the fast loop (lint + the tests not marked slow or browser).
-# Both create .venv idempotently (re-installing only when pyproject.toml changes).
+# Each creates .venv idempotently (re-installing only when pyproject.toml changes).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin

@@ -32,6 +32,7 @@ def _package_folders() -> dict[str, Path]:
 
 
 def test_every_package_folder_is_listed() -> None:
+    assert len(set(SETUPTOOLS["packages"])) == len(SETUPTOOLS["packages"]), "listed twice"
     listed = set(SETUPTOOLS["packages"])
     folders = _package_folders()
     assert sorted(set(folders) - listed) == [], "add these to [tool.setuptools] packages"
