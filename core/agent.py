@@ -136,14 +136,34 @@ class Agent:
         return featurizer
 
     @classmethod
-    def default(cls, policy: str = "greedy", *, task: str = "overhand", **kwargs: object) -> Agent:
+    def default(
+        cls,
+        policy: str = "greedy",
+        *,
+        task: str = "overhand",
+        top_k: int = 5,
+        depth: int | None = None,
+        width: int | None = None,
+        registration: RegistrationPreset = "scan",
+        scan_threads: int = 1,
+    ) -> Agent:
         """An agent on the task's shipped library and model (the model only where the policy
         uses one, so nn and oracle rank exactly as nearest neighbour)."""
         spec = get_task(task)
         library = DemoLibrary.load(spec.files.library_path)
-        needs = policy_config(_policy_name(policy, kwargs.get("depth"), kwargs.get("width")))  # type: ignore[arg-type]
-        model = QModel.load(spec.files.model_path) if needs.needs_model else None
-        return cls(library, model, policy, task=spec, **kwargs)  # type: ignore[arg-type]
+        needs = policy_config(_policy_name(policy, depth, width)).needs_model
+        model = QModel.load(spec.files.model_path) if needs else None
+        return cls(
+            library,
+            model,
+            policy,
+            task=spec,
+            top_k=top_k,
+            depth=depth,
+            width=width,
+            registration=registration,
+            scan_threads=scan_threads,
+        )
 
     def with_policy(self, policy: str, *, runner: ExpansionRunner | None = None) -> Agent:
         """Another policy on this agent's library, model, task and warm caches."""
