@@ -56,6 +56,11 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         task=task,
     )
     store = open_store(db_url(args), create=True, auto_upgrade=True)
+    try:
+        store.check_task(task)  # a store holding another task's labels is refused
+    except BaseException:
+        store.close()
+        raise
     added = resources.register_starts(store, level)
     if added:
         print(f"registered {added} {level} training starts in {store.url}")

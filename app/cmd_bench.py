@@ -15,6 +15,7 @@ from knotlab.app.options import (
     add_no_progress_argument,
     add_task_argument,
     add_task_set_argument,
+    check_output,
     integer,
     library_file,
     load_library,
@@ -91,11 +92,15 @@ def resolve_model_path(arg: str | None, out_dir: Path, task: str = DEFAULT_TASK)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from knotlab.core.atomic import check_output_dir
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.experiments.bench import (
+        CHART_FILE,
+        OUTCOMES_FILE,
+        RESULTS_FILE,
+        RUN_FILE,
         format_table,
         needs_model,
+        own_results_dir,
         run_bench,
         validate_policies,
     )
@@ -105,7 +110,15 @@ def _run(args: argparse.Namespace) -> int:
     policies: list[str] = args.policies
     engine: Engine = args.engine
     validate_policies(policies)
-    out_dir = check_output_dir(args.out_dir, flag="--out-dir")
+    out_dir = check_output(  # its own results folder resumes; another folder needs --force
+        args.out_dir,
+        flag="--out-dir",
+        force=args.force,
+        kind="results folder",
+        folder=True,
+        writes=(OUTCOMES_FILE, RUN_FILE, RESULTS_FILE, CHART_FILE),
+        resume=own_results_dir,
+    )
     library_path = library_file(args)
     task_path = task_set_file(args, "test")
     try:
@@ -230,7 +243,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_flag(p, "--level")
     # `--out DIR`, the spelling before output folders were --out-dir, still works: argparse
     # takes a unique prefix of a flag for the flag (tests/app/test_cli_flags.py holds it)
-    add_flag(p, "--out-dir", required=True, detail="the results (resumed if it exists)")
+    add_flag(
+        p, "--out-dir", required=True, detail="the results (resumed if it is a run's own folder)"
+    )
+    add_flag(p, "--force", detail="here: the --out-dir folder (needed to resume one in results/)")
     add_flag(
         p,
         "--model",

@@ -9,7 +9,7 @@ from knotlab.app.options import (
     add_flag,
     add_no_progress_argument,
     add_task_argument,
-    check_not_shipped,
+    check_output,
     integer,
     number,
 )
@@ -53,11 +53,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate and save a library; print a one-line summary."""
-    from knotlab.core.atomic import check_output_file
     from knotlab.core.demos.generation import GenSettings, generate_library
 
-    check_output_file(args.out)  # before minutes of simulation, not after
-    check_not_shipped(args.out, force=args.force, kind="demo library")
+    check_output(args.out, force=args.force, kind="demo library")  # before minutes of simulation
 
     report = generate_library(
         args.starts,

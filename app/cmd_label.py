@@ -18,6 +18,7 @@ from knotlab.app.options import (
     library_file,
     load_library,
     load_task_set,
+    task_of,
     task_set_file,
 )
 
@@ -58,7 +59,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Label the tasks and store every execution as soon as it is done."""
     from knotlab.core.errors import InvalidInputError
-    from knotlab.core.experiments.labeller import OracleParams, oracle_label_tasks
+    from knotlab.core.experiments.labeller import (
+        OracleParams,
+        labelled_task_ids,
+        oracle_label_tasks,
+    )
     from knotlab.labeling_db.store import open_store
 
     args.db = db_url(args)
@@ -75,9 +80,13 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     solved = sims = dead = 0
     with open_store(args.db) as store:
+        store.check_task(task_of(args))  # a store holding another task's labels is refused
+        # a task is its rope: a stored id whose rope differs is refused, not skipped as labelled
+        stored = store.training_executions(include_unfinished=True)
+        done = labelled_task_ids(selected, stored, where=args.db)
+        todo = [t for t in selected if t.task_id not in done]
+        store.register_library(library.content_hash(), task=task_of(args))
         store.add_labeller("oracle", "oracle")
-        done = {e.execution_id for e in store.training_executions(include_unfinished=True)}
-        todo = [t for t in selected if f"oracle-{t.task_id}" not in done]
         print(
             f"{len(selected) - len(todo)} of {len(selected)} tasks already labelled in {args.db}; "
             f"labelling {len(todo)} with library {library.content_hash()}",

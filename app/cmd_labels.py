@@ -13,6 +13,7 @@ from knotlab.app.options import (
     add_flag,
     add_no_progress_argument,
     add_task_argument,
+    check_output,
     db_url,
     library_file,
     load_library,
@@ -46,14 +47,14 @@ def export_format(out: str | None, fmt: str | None) -> LabelFormat:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from knotlab.core.atomic import atomic_open, check_output_file
+    from knotlab.core.atomic import atomic_open
     from knotlab.labeling_db.interchange import export_labels
     from knotlab.labeling_db.store import open_store
 
     fmt = export_format(args.out, args.format)
     to_file = args.out not in (None, "-")
     if to_file:
-        check_output_file(args.out, suffixes=tuple(SUFFIXES))
+        check_output(args.out, force=args.force, kind="labels file", suffixes=tuple(SUFFIXES))
     with open_store(db_url(args), create=False, auto_upgrade=False) as store:
         if to_file:  # atomic: a failed export never leaves half a file behind
             with atomic_open(args.out, newline="") as fh:
@@ -79,15 +80,21 @@ def _tries(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from knotlab.core.experiments.tries import try_candidates, try_jobs
+    from knotlab.core.experiments.tries import check_tries_match, try_candidates, try_jobs
     from knotlab.core.selection.tries import read_tries
     from knotlab.labeling_db.interchange import read_labels
 
     executions = [item.execution for item in read_labels(args.labels)]
+
+    def own_tries(path: Path) -> bool:  # its own tries file, of these labels and --top, or raise
+        check_tries_match(read_tries(path), executions, args.top, where=path)
+        return True
+
+    # Resumable: the states already in OUT are kept and skipped, when OUT is this command's
+    # tries file of these labels (another file, or tries of other labels, are refused: a torn or
+    # foreign line is named by read_tries rather than silently dropped).
+    out = check_output(args.out, force=args.force, kind="tries file", suffixes=(), resume=own_tries)
     library = load_library(library_file(args), args)
-    out = Path(args.out)
-    # Resumable: states already in OUT are kept and skipped (a torn last line is refused by
-    # read_tries, naming it, rather than silently dropped).
     done = set(read_tries(out)) if out.exists() else set()
     jobs = try_jobs(executions, args.top, done)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -117,6 +124,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         detail="default: from the --out extension (.jsonl or .csv); jsonl on stdout",
     )
     add_flag(p, "--out", default=None, detail=".jsonl or .csv (default: stdout)")
+    add_flag(p, "--force", detail="here: the labels file --out names")
     p.add_argument("--source", choices=("oracle", "human"), default=None, help="only this source")
     add_db_argument(p)
     p.set_defaults(func=_export)
@@ -140,7 +148,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_task_argument(p)
     add_flag(p, "--library", detail="default: the task's shipped library")
     add_flag(p, "--top", default=5, detail="each tried once in simulation, cheapest first (5)")
-    add_flag(p, "--out", required=True, detail="JSONL to append to (resumed if it exists)")
+    add_flag(
+        p, "--out", required=True, detail="JSONL to append to (resumed if it is tries of --labels)"
+    )
+    add_flag(p, "--force", detail="here: the --out file (needed to resume one in results/)")
     add_flag(p, "--workers")
     add_no_progress_argument(p)
     p.set_defaults(func=_tries)

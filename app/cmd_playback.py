@@ -12,6 +12,7 @@ from knotlab.app.options import (
     add_flag,
     add_task_argument,
     add_task_set_argument,
+    check_output,
     db_url,
     integer,
     number,
@@ -33,6 +34,7 @@ def _run(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.errors import LabelingDbError
 
     spec: str = args.episode
+    check_output(args.out, force=args.force, kind="animation", suffixes=(".gif", ".mp4"))
     try:
         if spec.startswith("db:"):
             try:
@@ -89,6 +91,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("episode", metavar="EPISODE")
     add_flag(p, "--out", required=True, detail="the animation: .gif, or .mp4 (imageio-ffmpeg)")
+    add_flag(p, "--force", detail="here: the animation --out names")
     p.add_argument(
         "--fps", type=integer(1, maximum=60), default=20, help="frames per second, 1-60 (20)"
     )

@@ -12,7 +12,7 @@ from knotlab.app.options import (
     add_flag,
     add_no_progress_argument,
     add_task_argument,
-    check_not_shipped,
+    check_output,
     integer,
     library_file,
     load_library,
@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_flag(gen, "--library", detail="whose start ropes to perturb (default: the task's)")
     add_flag(gen, "--out-dir", default=".", detail="the task sets (.)")
     add_flag(gen, "--workers")
-    add_flag(gen, "--force", detail="here: the shipped task sets")
+    add_flag(gen, "--force", detail="here: task sets already at --out-dir (shipped ones too)")
     add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
     info = sub.add_parser("info", help="summarise a task-set file")
@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_generate(args: argparse.Namespace) -> int:
     """Generate both splits and save them."""
-    from knotlab.core.atomic import check_output_dir, check_output_file
+    from knotlab.core.atomic import check_output_dir
     from knotlab.core.demos.tasks import generate_tasks
     from knotlab.core.errors import InvalidInputError
 
@@ -69,10 +69,13 @@ def run_generate(args: argparse.Namespace) -> int:
         raise InvalidInputError("--train and --test are both 0: there is nothing to generate")
     level = resolve_level(args, shipped=False)
     out_dir = check_output_dir(args.out_dir, flag="--out-dir")
-    for split, _ in splits:  # every output is checked before the first simulation
-        path = out_dir / f"tasks_{level}_{split}.npz"
-        check_output_file(path, flag="--out-dir")
-        check_not_shipped(path, flag="--out-dir", force=args.force)
+    names = [f"tasks_{level}_{split}.npz" for split, _ in splits]
+    for name in names:  # every output is checked before the first simulation
+        check_output(out_dir / name, flag="--out-dir", force=args.force, kind="task set")
+    # and no new file goes into a shipped folder (a task's data) without --force either
+    check_output(
+        out_dir, flag="--out-dir", force=args.force, kind="folder", folder=True, writes=names
+    )
     lib = load_library(library_file(args), args)
     starts = lib.start_states()
     extra = {"library_hash": lib.content_hash()}

@@ -6,7 +6,7 @@ import argparse
 import json
 import time
 
-from knotlab.app.options import add_flag
+from knotlab.app.options import add_flag, check_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,20 +18,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "with the knot invariant, and write a top-down picture. Exit code 0 if knotted.",
     )
     add_flag(parser, "--out", default="knot.png", detail="the PNG (default: knot.png)")
+    add_flag(parser, "--force", detail="here: the PNG --out names")
     add_flag(parser, "--json", detail="a summary instead of the text")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Tie the knot; 0 if the final rope is an overhand knot, 1 otherwise."""
-    from knotlab.core.atomic import atomic_path, check_output_file
+    from knotlab.core.atomic import atomic_path
     from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
     from knotlab.core.world.knot import analyse_knot
     from knotlab.core.world.render import render_topdown
     from knotlab.core.world.rope import straight_rope
     from knotlab.core.world.sim import RopeParams, RopeWorld
 
-    out = check_output_file(args.out, suffixes=(".png",))  # before the simulation runs
+    # before the simulation runs
+    out = check_output(args.out, force=args.force, kind="picture", suffixes=(".png",))
     params = RopeParams()
     wall0 = time.perf_counter()
     steps = []

@@ -24,7 +24,7 @@ from knotlab.app.options import (
     add_flag,
     add_no_progress_argument,
     add_task_argument,
-    check_not_shipped,
+    check_output,
     default_db_url,
     library_file,
     load_library,
@@ -74,7 +74,7 @@ def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExec
 
 
 def _run(args: argparse.Namespace) -> int:
-    from knotlab.core.atomic import check_output_dir, check_output_file
+    from knotlab.core.atomic import check_output_dir
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.selection.model_selection import QModelSearch, SelectBy
     from knotlab.core.selection.tries import read_tries
@@ -83,8 +83,7 @@ def _run(args: argparse.Namespace) -> int:
     library_path = library_file(args)
     out_path = Path(args.out) if args.out else None
     if out_path is not None:  # before featurising and solving, not after
-        check_output_file(out_path)
-        check_not_shipped(out_path, force=args.force, kind="model")
+        check_output(out_path, force=args.force, kind="model")
     else:
         check_output_dir(defaults.MODELS_DIR, flag="--out (default folder)")
     library = load_library(library_path, args)

@@ -4,6 +4,10 @@ One meaning per flag name: a flag that more than one command takes is declared h
 its dest, the kind of value it takes and the help sentence that says what it means) and added with
 `add_flag`; tests/app/test_cli_flags.py walks the whole parser tree and holds every command to it.
 An output file is ``--out FILE`` and an output folder ``--out-dir DIR`` everywhere.
+Every path a command writes goes through `check_output`, one rule: an output that exists is
+written only with ``--force`` or when it is the command's own output to resume (bench's results
+folder, labels tries' file, with a matching identity); a shipped or committed one (static/,
+results/, a task's data folder) only with ``--force``.
 
 `--db URL` names the labelling database everywhere; its default is ``$KNOTLAB_DB_URL`` when set,
 else the SQLite file ``knotlab.db`` in the working directory. ``--url`` is kept as a hidden alias
@@ -19,7 +23,7 @@ import argparse
 import math
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -154,7 +158,12 @@ _declare(
 )
 _declare("--no-progress", "no progress bar", switch=True)
 _declare("--json", "print the result as JSON, on the last line of stdout", switch=True)
-_declare("--force", "allow replacing a shipped or committed file", switch=True)
+_declare(
+    "--force",
+    "allow writing into an output path that exists or is shipped or committed "
+    "(replace it, or resume into it)",
+    switch=True,
+)
 _declare("--seed", "random seed, an integer >= 0", type=SEED)
 _declare("--workers", "worker processes (default: all cores)", type=WORKERS, metavar="N")
 _declare(
@@ -316,18 +325,60 @@ def load_task_set(path: str | Path, args: argparse.Namespace) -> TaskSet:
     return task_set
 
 
-def check_not_shipped(
-    path: str | Path, *, flag: str = "--out", force: bool, kind: str = "file"
-) -> None:
-    """Refuse to replace an existing shipped file (a task's data, static/, results/) unless
-    ``force``."""
+def is_committed(path: str | Path) -> bool:
+    """True for an existing path in a shipped or committed place: static/, results/ or a task's
+    data folder (decided cheaply, without asking git: such a path that exists is treated as
+    committed)."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    protected = (defaults.STATIC_DIR, *defaults.shipped_dirs())
+    resolved = path.resolve()
+    return any(resolved.is_relative_to(d.resolve()) for d in protected)
+
+
+def check_output(
+    path: str | Path,
+    *,
+    flag: str = "--out",
+    force: bool,
+    kind: str = "file",
+    folder: bool = False,
+    suffixes: Sequence[str] = (".npz",),
+    writes: Sequence[str] = (),
+    resume: Callable[[Path], bool] | None = None,
+) -> Path:
+    """The one rule for every path a command writes, checked before any work starts.
+
+    - ``path`` must be writable (core.atomic's checks: a file name with one of ``suffixes``, or
+      with ``folder`` a folder).
+    - A shipped or committed path (`is_committed`) is written only with ``force``, resuming
+      included.
+    - A path that exists (a folder: one of the files it ``writes`` exists in it) is written only
+      with ``force``, or when ``resume`` says it is this command's own output to resume:
+      ``resume(path)`` returns True for its own (matching) output, False for something else, and
+      raises a one-line error for its own kind of output made by another run (never mixed, not
+      even with ``force``).
+    """
+    from knotlab.core.atomic import check_output_dir, check_output_file
     from knotlab.core.errors import OutputPathError
 
-    path = Path(path)
-    protected = (defaults.STATIC_DIR, *defaults.shipped_dirs())
-    inside = any(path.resolve().is_relative_to(d.resolve()) for d in protected)
-    if path.exists() and inside and not force:
+    if folder:
+        out = check_output_dir(path, flag=flag)
+        exists = out.exists() and (not writes or any((out / n).exists() for n in writes))
+    else:
+        out = check_output_file(path, flag=flag, suffixes=suffixes)
+        exists = out.exists()
+    if is_committed(out) and not force:
+        verb = "write into" if folder else "resume or replace" if resume is not None else "replace"
         raise OutputPathError(
-            f"{flag} {path} would replace a shipped or committed {kind}; "
+            f"{flag} {out} would {verb} a shipped or committed {kind}; "
             "write elsewhere or pass --force"
         )
+    if not exists:
+        return out
+    own = resume(out) if resume is not None else False
+    if not own and not force:
+        made = "is not this command's own output to resume" if resume is not None else "exists"
+        raise OutputPathError(f"{flag} {out} {made}; write elsewhere or pass --force to replace it")
+    return out

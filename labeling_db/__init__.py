@@ -17,6 +17,7 @@ from knotlab.labeling_db.errors import (
     SchemaOutdatedError,
     SchemaTooNewError,
     SchemaVersionError,
+    TaskMismatchError,
 )
 from knotlab.labeling_db.store import (
     DEFAULT_URL,
@@ -60,6 +61,7 @@ __all__ = [
     "StateRecord",
     "Store",
     "StoredExecution",
+    "TaskMismatchError",
     "open_store",
     "schema_head",
     "schema_status",

@@ -136,6 +136,7 @@ def _load_executions(s: Session, conds: list[Any]) -> list[StoredExecution]:
             Episode.ended_in_knot,
             Episode.task_id,
             DemoLibrary.library_hash,
+            DemoLibrary.task,
             Episode.meta,
             Episode.started_at,
             Episode.finished_at,
@@ -237,6 +238,7 @@ def _load_executions(s: Session, conds: list[Any]) -> list[StoredExecution]:
                 labelled_at=tuple(st.labelled_at for st in steps[ep.id]),
                 step_provenance=tuple(provenance(st) for st in steps[ep.id]),
                 dead_end_provenance=tuple(provenance(d) for d in dead[ep.id]),
+                task=ep.task,  # its library's (None: no library)
             )
         )
     return out

@@ -53,6 +53,10 @@ class ConflictError(LabelingDbError):
     """A write conflicts with what is stored (duplicate key, wrong step order, label in use)."""
 
 
+class TaskMismatchError(ConflictError):
+    """A library, labels file or command of one task meets a store holding another task's."""
+
+
 class InvalidRecordError(LabelingDbError, InvalidInputError):
     """A record handed to the store (or read from an import file) is malformed."""
 

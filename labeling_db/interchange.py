@@ -5,6 +5,10 @@ CSV: one ``execution`` row per execution followed by its ``step`` and ``dead_end
 lists and metadata are JSON text in their cells; an empty cell is null.
 Export then import then export gives byte-identical files (values are stored as float32, and a
 float32 printed with ``repr`` as a float64 reads back to the same float32).
+An execution of a task other than the overhand knot names it: a ``task`` key in JSONL, a last
+``task`` column in CSV (written only when some execution needs it); without it, labels are the
+overhand knot's, so files from before tasks existed are unchanged. A file holds one task's labels,
+and is refused by a store holding another task's (:class:`TaskMismatchError`).
 An import reads and validates every row before writing anything, and writes in one transaction:
 a bad row raises :class:`ImportRowError` naming the file, line and field, and nothing is stored.
 """
@@ -25,7 +29,13 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledExecution, LabelledStep
-from knotlab.labeling_db.errors import ConflictError, ImportRowError, InvalidRecordError
+from knotlab.core.tasks import DEFAULT_TASK
+from knotlab.labeling_db.errors import (
+    ConflictError,
+    ImportRowError,
+    InvalidRecordError,
+    TaskMismatchError,
+)
 from knotlab.labeling_db.models import EPISODE_STATUSES
 from knotlab.labeling_db.store import StateProvenance, Store, StoredExecution
 
@@ -59,6 +69,12 @@ CSV_COLUMNS: tuple[str, ...] = (
 )
 _EXEC_FIELDS = CSV_COLUMNS[1:11]
 _STEP_FIELDS = CSV_COLUMNS[11:]
+CSV_TASK_COLUMNS: tuple[str, ...] = (*CSV_COLUMNS, "task")  # when an execution is not overhand
+
+
+def _task_of(item: StoredExecution) -> str | None:
+    """The task an export names: None for the overhand knot's (and unknown) executions."""
+    return None if item.task in (None, DEFAULT_TASK) else item.task
 
 
 def _dumps(value: Any) -> str:
@@ -107,7 +123,7 @@ def execution_to_dict(item: StoredExecution) -> dict[str, Any]:
                 "state_seed": prov.seed,
             }
         )
-    return {
+    out: dict[str, Any] = {
         "execution_id": ex.execution_id,
         "source": ex.source,
         "labeller": ex.labeller,
@@ -121,6 +137,9 @@ def execution_to_dict(item: StoredExecution) -> dict[str, Any]:
         "steps": steps,
         "dead_ends": dead,
     }
+    if _task_of(item) is not None:
+        out["task"] = item.task
+    return out
 
 
 def write_labels(items: list[StoredExecution], out: TextIO, fmt: Format) -> None:
@@ -133,7 +152,9 @@ def write_labels(items: list[StoredExecution], out: TextIO, fmt: Format) -> None
     if fmt != "csv":
         raise InvalidRecordError(f"format must be 'jsonl' or 'csv', got {fmt!r}")
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(CSV_COLUMNS)
+    with_task = any(_task_of(item) is not None for item in items)
+    writer.writerow(CSV_TASK_COLUMNS if with_task else CSV_COLUMNS)
+    tail = [""] if with_task else []
 
     def cell(v: Any) -> str:
         if v is None:
@@ -146,16 +167,29 @@ def write_labels(items: list[StoredExecution], out: TextIO, fmt: Format) -> None
 
     for item in items:
         d = execution_to_dict(item)
-        writer.writerow(["execution", *(cell(d[c]) for c in _EXEC_FIELDS), *[""] * 12])
+        task = [cell(d.get("task", DEFAULT_TASK))] if with_task else []
+        writer.writerow(["execution", *(cell(d[c]) for c in _EXEC_FIELDS), *[""] * 12, *task])
         for step in d["steps"]:
             vals = {**step, "index": step["step_index"]}
             writer.writerow(
-                ["step", d["execution_id"], *[""] * 9, *(cell(vals[c]) for c in _STEP_FIELDS)]
+                [
+                    "step",
+                    d["execution_id"],
+                    *[""] * 9,
+                    *(cell(vals[c]) for c in _STEP_FIELDS),
+                    *tail,
+                ]
             )
         for i, de in enumerate(d["dead_ends"]):
             vals = {c: None for c in _STEP_FIELDS} | de | {"index": i}
             writer.writerow(
-                ["dead_end", d["execution_id"], *[""] * 9, *(cell(vals[c]) for c in _STEP_FIELDS)]
+                [
+                    "dead_end",
+                    d["execution_id"],
+                    *[""] * 9,
+                    *(cell(vals[c]) for c in _STEP_FIELDS),
+                    *tail,
+                ]
             )
 
 
@@ -302,6 +336,8 @@ def _build(
             library_hash=row.get("library_hash", "str", optional=True),
             metadata=row.get("metadata", "dict"),
         )
+        # absent (or an empty CSV cell): the overhand knot's, as every file before tasks
+        task = row.get("task", "str", optional=True) if "task" in row.data else None
         return StoredExecution(
             execution,
             status=row.enum("status", EPISODE_STATUSES),
@@ -310,6 +346,7 @@ def _build(
             labelled_at=tuple(times) if times and times[0] is not None else (),
             step_provenance=tuple(p for _, _, p in steps),
             dead_end_provenance=tuple(p for _, p in dead),
+            task=task or DEFAULT_TASK,
         )
     except (InvalidInputError, InvalidRecordError) as exc:
         if isinstance(exc, ImportRowError):
@@ -397,8 +434,11 @@ def _read_csv(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
         header = next(reader)
     except StopIteration:
         raise ImportRowError(path, 1, "header", "file is empty (expected a header row)") from None
-    if tuple(header) != CSV_COLUMNS:
-        raise ImportRowError(path, 1, "header", f"expected the columns {', '.join(CSV_COLUMNS)}")
+    columns = tuple(header)
+    if columns not in (CSV_COLUMNS, CSV_TASK_COLUMNS):
+        raise ImportRowError(
+            path, 1, "header", f"expected the columns {', '.join(CSV_COLUMNS)}[, task]"
+        )
     current: _Row | None = None
     steps: list[tuple[LabelledStep, datetime | None, StateProvenance]] = []
     dead: list[tuple[DeadEndState, StateProvenance]] = []
@@ -406,11 +446,11 @@ def _read_csv(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
         line = reader.line_num
         if not cells:
             continue
-        if len(cells) != len(CSV_COLUMNS):
+        if len(cells) != len(columns):
             raise ImportRowError(
-                path, line, "(row)", f"has {len(cells)} cells, expected {len(CSV_COLUMNS)}"
+                path, line, "(row)", f"has {len(cells)} cells, expected {len(columns)}"
             )
-        row = _csv_row(path, line, dict(zip(CSV_COLUMNS, cells, strict=True)))
+        row = _csv_row(path, line, dict(zip(columns, cells, strict=True)))
         kind = row.data["row_type"]
         if kind == "execution":
             if current is not None:
@@ -479,8 +519,16 @@ def import_labels(
     reads the file before it opens, and maybe creates, the database).
     """
     items = read_labels(path, fmt) if items is None else items
+    tasks = sorted({item.task or DEFAULT_TASK for item in items})
+    if len(tasks) > 1:
+        raise InvalidRecordError(
+            f"{path}: holds labels of tasks {', '.join(map(repr, tasks))}; a labels file is one "
+            "task's (nothing was imported)"
+        )
     try:
-        ids = store.add_executions(items, if_exists=if_exists)
+        ids = store.add_executions(items, if_exists=if_exists, task=tasks[0] if tasks else None)
+    except TaskMismatchError as exc:
+        raise TaskMismatchError(f"{path}: {exc}") from exc
     except ConflictError as exc:
         raise ConflictError(f"{path}: {exc}") from exc
     return sum(i is not None for i in ids)

@@ -15,11 +15,13 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
+from knotlab.core.tasks import DEFAULT_TASK
 from knotlab.labeling_db.decisions import start_key
 from knotlab.labeling_db.errors import (
     ConflictError,
     InvalidRecordError,
     RecordNotFoundError,
+    TaskMismatchError,
 )
 from knotlab.labeling_db.models import (
     EPISODE_STATUSES,
@@ -42,6 +44,7 @@ from knotlab.labeling_db.records import (
 from knotlab.labeling_db.rows import (
     _check_json,
     _check_key,
+    _check_task,
     _episode_info,
     _label_info,
     _label_row,
@@ -49,6 +52,7 @@ from knotlab.labeling_db.rows import (
     _library_id,
     _new_state,
     _state_record,
+    _store_tasks,
     _unlabelled_start_states,
 )
 from knotlab.labeling_db.store_base import StoreBase
@@ -110,20 +114,49 @@ class LabellingStore(StoreBase):
         )
 
     def register_library(
-        self, library_hash: str, *, name: str | None = None, demo_keys: Sequence[str] | None = None
+        self,
+        library_hash: str,
+        *,
+        name: str | None = None,
+        demo_keys: Sequence[str] | None = None,
+        task: str | None = None,
     ) -> None:
-        """Record a demo library by its hash (fills in name and keys if not yet known)."""
+        """Record a demo library by its hash and task (default overhand); fills in name and keys.
+
+        A library already recorded for another task is refused (:class:`TaskMismatchError`).
+        """
         _check_key("library_hash", library_hash, limit=128)
+        task = DEFAULT_TASK if task is None else task
+        _check_task(task)
 
         def work(s: Session) -> None:
-            lib = s.get(DemoLibrary, _library_id(s, library_hash))
+            lib = s.get(DemoLibrary, _library_id(s, library_hash, task))
             assert lib is not None
             if name is not None:
                 lib.name = name
             if demo_keys is not None:
                 lib.demo_keys = list(demo_keys)
 
-        self._run(work, write=True)
+        with self._mismatch():
+            self._run(work, write=True)
+
+    def tasks(self) -> set[str]:
+        """The tasks this store holds labels or libraries of (empty for a new store).
+
+        The tasks of its demo libraries, and the overhand knot when an episode names no library
+        (a label without a task record is the overhand knot's).
+        """
+        return self._run(_store_tasks, write=False)
+
+    def check_task(self, task: str) -> None:
+        """Refuse (one line, :class:`TaskMismatchError`) a store holding another task's labels."""
+        others = sorted(self.tasks() - {task})
+        if others:
+            raise TaskMismatchError(
+                f"{self.url} holds labels of task {', '.join(map(repr, others))}, not {task!r}: "
+                "use another database for this task (--db) or pass --task "
+                f"{others[0]}"
+            )
 
     def add_start_states(
         self,

@@ -29,11 +29,12 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 from sqlalchemy.types import TypeDecorator
 
 from knotlab.core.outcomes import STEP_OUTCOMES
+from knotlab.core.tasks import DEFAULT_TASK
 
 # The Alembic revision these classes describe (newest in labeling_db/migrations/versions): a
 # database stamped with it is opened without loading Alembic. Bump it with every new migration;
 # tests/test_db_schema.py checks it against the migrations.
-SCHEMA_REVISION = "0002"
+SCHEMA_REVISION = "0003"
 OUTCOME_VALUES = STEP_OUTCOMES  # StepOutcome's values, as the 0001 migration wrote them
 SOURCE_VALUES = ("oracle", "human")
 EPISODE_STATUSES = ("in_progress", "completed", "abandoned")
@@ -101,7 +102,11 @@ class Labeller(Base):
 
 
 class DemoLibrary(Base):
-    """A demonstration library, identified by its content hash."""
+    """A demonstration library, identified by its content hash, and the task it is for.
+
+    The task (0003) is the knot the library's labels are for; rows from before tasks existed
+    are the overhand knot's (the server default).
+    """
 
     __tablename__ = "demo_libraries"
 
@@ -110,6 +115,7 @@ class DemoLibrary(Base):
     name: Mapped[str | None] = mapped_column(String(200))
     demo_keys: Mapped[list[str] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    task: Mapped[str] = mapped_column(String(64), server_default=DEFAULT_TASK)
 
 
 class RopeState(Base):

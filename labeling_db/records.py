@@ -9,6 +9,7 @@ from typing import Any, Literal
 import numpy as np
 
 from knotlab.core.selection.labels import LabelledExecution
+from knotlab.core.tasks import DEFAULT_TASK
 from knotlab.labeling_db.errors import (
     InvalidRecordError,
 )
@@ -118,6 +119,9 @@ class StoredExecution:
     """A `LabelledExecution` plus what the store keeps around it (status, times, provenance).
 
     Empty `labelled_at` / provenance tuples mean "now" / "derived from the execution".
+    `task` is the task of the execution's demo library: None when unknown (the library's
+    recorded task when it has one, else the overhand knot's); a task other than the overhand
+    knot's needs a `library_hash` (the store records a task with its demo library).
     """
 
     execution: LabelledExecution
@@ -127,11 +131,23 @@ class StoredExecution:
     labelled_at: tuple[datetime, ...] = ()
     step_provenance: tuple[StateProvenance, ...] = ()
     dead_end_provenance: tuple[StateProvenance, ...] = ()
+    task: str | None = None
 
     def __post_init__(self) -> None:
         ex = self.execution
         if not isinstance(ex, LabelledExecution):
             raise InvalidRecordError(f"execution must be a LabelledExecution, got {type(ex)}")
+        if self.task is not None:
+            if not isinstance(self.task, str) or not self.task or len(self.task) > 64:
+                raise InvalidRecordError(
+                    f"execution {ex.execution_id!r}: task must be a non-empty string of at most "
+                    f"64 chars, got {self.task!r}"
+                )
+            if self.task != DEFAULT_TASK and ex.library_hash is None:
+                raise InvalidRecordError(
+                    f"execution {ex.execution_id!r}: task {self.task!r} needs a library_hash "
+                    "(the store records a task with its demo library)"
+                )
         if self.status not in EPISODE_STATUSES:
             raise InvalidRecordError(
                 f"execution {ex.execution_id!r}: status must be one of {EPISODE_STATUSES}, "

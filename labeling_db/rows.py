@@ -11,9 +11,11 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from knotlab.core.outcomes import StepOutcome
+from knotlab.core.tasks import DEFAULT_TASK
 from knotlab.labeling_db.arrays import decode_array, encode_array
 from knotlab.labeling_db.errors import (
     InvalidRecordError,
+    TaskMismatchError,
 )
 from knotlab.labeling_db.models import (
     DemoLibrary,
@@ -26,6 +28,7 @@ from knotlab.labeling_db.models import (
 from knotlab.labeling_db.records import EpisodeInfo, LabelInfo, StateProvenance, StateRecord
 
 _MAX_KEY = 200
+_MAX_TASK = 64  # demo_libraries.task
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -67,18 +70,38 @@ def _labeller_id(session: Session, name: str, kind: str) -> int:
     return session.scalars(select(Labeller.id).where(Labeller.name == name)).one()
 
 
-def _library_id(session: Session, library_hash: str | None) -> int | None:
+def _library_id(session: Session, library_hash: str | None, task: str | None = None) -> int | None:
+    """The id of a library, recorded if new (for ``task``, else the overhand knot's).
+
+    With a ``task``, a library already recorded for another task is refused (one line).
+    """
     if library_hash is None:
         return None
-    _insert_ignore(
-        session,
-        DemoLibrary,
-        {"library_hash": library_hash, "created_at": utcnow()},
-        "library_hash",
-    )
-    return session.scalars(
-        select(DemoLibrary.id).where(DemoLibrary.library_hash == library_hash)
+    values: dict[str, Any] = {"library_hash": library_hash, "created_at": utcnow()}
+    if task is not None:
+        values["task"] = task
+    _insert_ignore(session, DemoLibrary, values, "library_hash")
+    lid, recorded = session.execute(
+        select(DemoLibrary.id, DemoLibrary.task).where(DemoLibrary.library_hash == library_hash)
     ).one()
+    if task is not None and recorded != task:
+        raise TaskMismatchError(
+            f"demo library {library_hash!r} is recorded for task {recorded!r}, not {task!r}"
+        )
+    return int(lid)
+
+
+def _check_task(value: object) -> None:
+    _check_key("task", value, limit=_MAX_TASK)
+
+
+def _store_tasks(session: Session) -> set[str]:
+    """The tasks of every recorded library, and overhand when an episode names no library."""
+    tasks = set(session.scalars(select(DemoLibrary.task).distinct()))
+    unnamed = session.scalar(select(Episode.id).where(Episode.library_id.is_(None)).limit(1))
+    if unnamed is not None:
+        tasks.add(DEFAULT_TASK)
+    return tasks
 
 
 def _new_state(

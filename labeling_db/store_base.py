@@ -18,6 +18,7 @@ from knotlab.labeling_db.errors import (
     ConflictError,
     CorruptDatabaseError,
     DatabaseBusyError,
+    TaskMismatchError,
 )
 from knotlab.labeling_db.records import SchemaStatus
 
@@ -96,6 +97,14 @@ class StoreBase:
             yield
         except IntegrityError as exc:
             raise ConflictError(f"{self.url}: {what} ({exc.orig})") from exc
+
+    @contextmanager
+    def _mismatch(self) -> Iterator[None]:
+        """Name this database in a task mismatch found by a row helper."""
+        try:
+            yield
+        except TaskMismatchError as exc:
+            raise TaskMismatchError(f"{self.url}: {exc}") from exc
 
     def schema_status(self) -> SchemaStatus:
         """The schema revision of this database."""

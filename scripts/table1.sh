@@ -9,7 +9,8 @@
 # oracle to the first 125 tasks (the paper's count) for a quicker reproduction.
 # Writes only files it makes: results/labels_LEVEL.db, results/labels_oracle_LEVEL.jsonl,
 # results/tries_LEVEL.jsonl, results/model_LEVEL.npz, results/train_LEVEL.txt and
-# results/table1_{main,hard}/.
+# results/table1_{main,hard}/. These are committed, so the commands resuming or rewriting them
+# are told to with --force (their identity is still checked: another run's results are refused).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 level=${1:-main}
@@ -28,14 +29,14 @@ if [ ! -e "results/labels_${level}.db" ] && [ -e "$labels" ]; then
   $bin/knotlab labels import "$labels" --db "$db"
 fi
 $bin/knotlab label --oracle --split train --level "$level" --tasks "$n_train" --db "$db"
-$bin/knotlab labels export --format jsonl --db "$db" --out "$labels"
+$bin/knotlab labels export --format jsonl --db "$db" --out "$labels" --force
 
 # 1b. Try the 5 cheapest candidates of every labelled state once in simulation (resumable): the
 #     training then knows which alternatives to the oracle's demo advance as well (the lever
 #     of docs/results.md; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with,
 #     NN 48.0 %).
 $bin/knotlab labels tries --labels "$labels" --top 5 \
-  --out "results/tries_${level}.jsonl"
+  --out "results/tries_${level}.jsonl" --force
 
 # 2. Train on the training labels only (validation split by execution, seed 0). Chosen on the
 #    validation split, never the test set: 50 + 20 landmark states, C = 1000, D = 10.
@@ -62,7 +63,7 @@ share=()
 if [ -z "${SHARE:-}" ]; then
   for lv in main hard; do
     $bin/knotlab bench --policies nn,greedy,la2x5 --tasks 500 --level "$lv" --model "$model" \
-      --out-dir "results/table1_${lv}"
+      --out-dir "results/table1_${lv}" --force
   done
 else
   share=(--share-simulations)
@@ -70,5 +71,5 @@ fi
 for lv in main hard; do
   $bin/knotlab bench --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 \
     --first "oracle=${first},la1x10=${first}" "${share[@]}" \
-    --level "$lv" --model "$model" --out-dir "results/table1_${lv}"
+    --level "$lv" --model "$model" --out-dir "results/table1_${lv}" --force
 done

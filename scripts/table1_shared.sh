@@ -41,8 +41,8 @@ for lv in main hard; do
     "commit=$(git rev-parse --short HEAD) engine=${engine}" >> "$out/segments.log"
   stop_line() { echo "stop  $(date -u +%FT%TZ) seconds=$(( $(date +%s) - start ))" >> "$out/segments.log"; }
   $bin/knotlab bench --policies "$policies" --tasks "$tasks" --level "$lv" \
-    --model results/model_main.npz --out-dir "$out" --workers "$workers" --share-simulations \
-    "${engine_flags[@]}" &
+    --model results/model_main.npz --out-dir "$out" --force --workers "$workers" \
+    --share-simulations "${engine_flags[@]}" &
   bench=$!
   # `|| true`: under set -e a failing kill (the bench already gone) would end the trap early;
   # the EXIT trap (ray_down) still runs after `exit`

@@ -167,7 +167,7 @@ class AppResources:
             for t in todo:
                 world.reset(np.asarray(t.start_nodes_k3))
                 clouds.append(self.agent.observe(world))
-        store.register_library(self.library_hash, name=f"{level} library")
+        store.register_library(self.library_hash, name=f"{level} library", task=self.task.name)
         store.add_start_states(
             clouds,
             rope_nodes_k3=[t.start_nodes_k3 for t in todo],

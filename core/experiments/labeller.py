@@ -15,17 +15,24 @@ within the remaining steps, decided by the same search from the outcome (depth-f
   budget) cannot lead to a knot in time: it is recorded as a dead-end state.
 - Tasks the search cannot solve produce no steps (the original discarded them), but any dead ends
   found on the way are kept: they are labels too.
+
+A task is its start rope, not only its id: each execution records its start rope's hash (metadata
+``start_rope_hash``), and `labelled_task_ids` counts a task as labelled only when the stored
+execution of its id started from the same rope (the hash, or for executions made before it was
+recorded, the first step's rope nodes); a stored task id with another rope is refused.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.hashing import ContentHash
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
@@ -36,6 +43,64 @@ if TYPE_CHECKING:  # the agent and the simulator: only for the checker
     from knotlab.core.demos.tasks import RopeTask
     from knotlab.core.execution.apply import ActionOutcome
     from knotlab.core.world.sim import RopeWorld, SimSnapshot
+
+
+START_HASH_KEY = "start_rope_hash"  # execution metadata: the hash of the task's start rope
+# A stored first-step rope within this of the task's start nodes (metres, any node and axis) is
+# the same start: the simulator's reset resamples and lifts the rope, and the store keeps float32
+# (0.17 mm at most on the 300 main-level training starts); another rope differs by centimetres.
+START_TOLERANCE_M = 1e-3
+
+
+def oracle_execution_id(task_id: str) -> str:
+    """The id of the oracle's execution of one task."""
+    return f"oracle-{task_id}"
+
+
+def start_rope_hash(nodes_k3: np.ndarray) -> str:
+    """The content hash of a start rope (its nodes as float64)."""
+    nodes = np.asarray(nodes_k3, dtype=np.float64)
+    return ContentHash().tagged_array("start_nodes_k3", nodes).hexdigest()
+
+
+def _start_difference(execution: LabelledExecution, nodes_k3: np.ndarray) -> str | None:
+    """How the start rope ``execution`` was made from differs from ``nodes_k3`` (None: the
+    same, or nothing stored to tell)."""
+    stored_hash = execution.metadata.get(START_HASH_KEY)
+    if stored_hash is not None:
+        now = start_rope_hash(nodes_k3)
+        return None if stored_hash == now else f"start rope hash {stored_hash}, now {now}"
+    first = execution.steps[0].rope_nodes_k3 if execution.steps else None
+    if first is None:
+        return None  # made before the hash was recorded and no step stored its rope
+    nodes = np.asarray(nodes_k3, dtype=float)
+    if first.shape != nodes.shape:
+        return f"{len(first)} stored rope nodes, {len(nodes)} now"
+    gap = float(np.max(np.abs(first - nodes)))
+    return None if gap <= START_TOLERANCE_M else f"nodes up to {gap * 1000:.1f} mm apart"
+
+
+def labelled_task_ids(
+    tasks: Sequence[RopeTask], executions: Iterable[LabelledExecution], *, where: str
+) -> set[str]:
+    """Ids of ``tasks`` the oracle has labelled already: a stored oracle execution of the id that
+    started from the same rope. One of another rope raises InvalidInputError (one line naming
+    the task id): the same id with a different rope is another task, not one to skip."""
+    stored = {e.execution_id: e for e in executions}
+    done: set[str] = set()
+    for task in tasks:
+        execution = stored.get(oracle_execution_id(task.task_id))
+        if execution is None:
+            continue
+        differs = _start_difference(execution, task.start_nodes_k3)
+        if differs is not None:
+            raise InvalidInputError(
+                f"task {task.task_id} is already labelled in {where}, but the ropes differ "
+                f"({differs}): this task set is not the one labelled there; label it into "
+                "another --db"
+            )
+        done.add(task.task_id)
+    return done
 
 
 @dataclass(frozen=True)
@@ -164,7 +229,7 @@ def label_task(
         for i, s in enumerate(steps)
     )
     execution = LabelledExecution(
-        execution_id=f"oracle-{task_id}",
+        execution_id=oracle_execution_id(task_id),
         source="oracle",
         labeller="oracle",
         steps=labelled,
@@ -177,6 +242,7 @@ def label_task(
             "candidates": params.candidates,
             "sim_budget": params.sim_budget,
             "budget_exhausted": search.exhausted,
+            START_HASH_KEY: start_rope_hash(start_nodes_k3),
         },
     )
     return OracleResult(

@@ -8,13 +8,15 @@ The same rope nodes give the same outcomes on one machine (the simulator is dete
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence, Set
+from collections.abc import Iterator, Mapping, Sequence, Set
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
 from knotlab.core.demos.library import DemoLibrary
+from knotlab.core.errors import InvalidInputError
 from knotlab.core.parallel import PerProcess, imap_processes
 from knotlab.core.selection.labels import LabelledExecution
 from knotlab.core.selection.tries import StateTries, TriedDemo
@@ -47,6 +49,36 @@ def try_jobs(
                 TryJob(*key, step.rope_nodes_k3, step.cloud_n3, tuple(step.candidates[:top]))
             )
     return jobs
+
+
+def check_tries_match(
+    tries: Mapping[tuple[str, int], StateTries],
+    executions: Sequence[LabelledExecution],
+    top: int,
+    *,
+    where: str | Path,
+) -> None:
+    """Raise InvalidInputError (one line) unless every state in ``tries`` is a labelled state of
+    ``executions`` whose ``top`` first candidates are the demos tried: tries made from these
+    labels with this ``top``, that a run may resume."""
+    shown = {
+        (ex.execution_id, step.step_index): tuple(step.candidates[:top])
+        for ex in executions
+        for step in ex.steps
+    }
+    for key, rec in tries.items():
+        if key not in shown:
+            raise InvalidInputError(
+                f"{where}: holds tries of {key[0]} step {key[1]}, which is not a labelled state "
+                "of these --labels: it was made from other labels; use a new --out"
+            )
+        tried = tuple(t.demo for t in rec.tried)
+        if tried != shown[key]:
+            raise InvalidInputError(
+                f"{where}: {key[0]} step {key[1]} tried {', '.join(tried)} but these --labels "
+                f"with --top {top} give {', '.join(shown[key]) or 'no candidates'}: made from "
+                "other labels or another --top; use a new --out"
+            )
 
 
 class _Trier:

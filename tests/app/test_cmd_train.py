@@ -77,7 +77,7 @@ def test_train_can_select_c_and_d_by_value_auc(tmp_path, capsys):
     args += ["--C", "0.01,100", "--D", "0.01,100"]
     chosen = {}
     for select in ("top1", "value_auc"):
-        assert cli.main([*args, "--select", select]) == 0
+        assert cli.main([*args, "--select", select, "--force"]) == 0  # the second replaces
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert summary["select"] == select
         chosen[select] = (summary["C"], summary["D"])

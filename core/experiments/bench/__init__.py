@@ -34,14 +34,15 @@ from knotlab.core.experiments.bench.engines import (
 from knotlab.core.experiments.bench.identity import (
     LINE_IDENTITY_KEY,
     RUN_FILE,
-    BenchMismatchError,
     RunIdentity,
     identity_of_lines,
     line_identity,
+    own_results_dir,
     stored_identity,
 )
 from knotlab.core.experiments.bench.outcome_log import (
     OUTCOMES_FILE,
+    BenchMismatchError,
     OutcomeLog,
 )
 from knotlab.core.experiments.bench.report import (
@@ -100,6 +101,7 @@ __all__ = [
     "is_search_policy",
     "line_identity",
     "needs_model",
+    "own_results_dir",
     "package_versions",
     "plan_jobs",
     "plot_table",

@@ -11,16 +11,15 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from knotlab.core.atomic import atomic_open
-from knotlab.core.errors import KnotlabError
-from knotlab.core.experiments.bench.outcome_log import OUTCOMES_FILE
+from knotlab.core.experiments.bench.outcome_log import (
+    OUTCOMES_FILE,
+    BenchMismatchError,
+    OutcomeLog,
+)
 from knotlab.core.selection.policies import policy_config
 
 RUN_FILE = "run.json"
 LINE_IDENTITY_KEY = "run"  # the key under which each outcome line records its run's identity
-
-
-class BenchMismatchError(KnotlabError):
-    """An output directory holds results made with different defining arguments."""
 
 
 @dataclass(frozen=True)
@@ -137,6 +136,21 @@ def stored_identity(out: Path, finished: dict[tuple[str, str], dict]) -> RunIden
                 f"run than {out / RUN_FILE} records ({'; '.join(diffs)}); use a new --out directory"
             )
     return from_file
+
+
+def own_results_dir(out: Path) -> bool:
+    """Whether ``out`` is a bench results folder to resume: True when it holds bench's run.json
+    or outcomes.jsonl and they read as one run's (BenchMismatchError, one line, when they do not:
+    another file's lines, outcomes of several runs); False when it holds neither.
+
+    Whether that run is *this* run (the same library, task set, seed, ...) is checked by
+    `RunIdentity.merged` once the inputs are loaded.
+    """
+    out = Path(out)
+    if not ((out / RUN_FILE).exists() or (out / OUTCOMES_FILE).exists()):
+        return False
+    stored_identity(out, OutcomeLog(out / OUTCOMES_FILE).load(strict=True))
+    return True
 
 
 def _without_identity(rec: dict) -> dict:

@@ -1,5 +1,9 @@
 """The append-only log of finished episodes (``outcomes.jsonl``): one JSON line per (policy, task),
 flushed and fsynced, a torn last line repaired on open.
+
+A bench run reads it strictly (``load(strict=True)``): a line that is not a bench outcome (not a
+JSON object with the fields bench writes) means the file is not this command's, and is refused
+rather than skipped and appended to.
 """
 
 from __future__ import annotations
@@ -10,7 +14,33 @@ import os
 from pathlib import Path
 from typing import TextIO
 
+from knotlab.core.errors import KnotlabError
+
 OUTCOMES_FILE = "outcomes.jsonl"
+# What every line bench writes holds (core.experiments.episode.EpisodeRecord.to_dict), by type.
+OUTCOME_FIELDS: dict[str, type | tuple[type, ...]] = {
+    "policy": str,
+    "task_id": str,
+    "success": bool,
+    "failure_kind": (str, type(None)),
+}
+
+
+class BenchMismatchError(KnotlabError):
+    """An output directory holds results made with different defining arguments, or files that
+    are not a bench run's."""
+
+
+def _outcome_problem(rec: object) -> str | None:
+    """Why ``rec`` is not a bench outcome line (None when it is one)."""
+    if not isinstance(rec, dict):
+        return f"a JSON {type(rec).__name__}, not an object"
+    for name, kind in OUTCOME_FIELDS.items():
+        if name not in rec:
+            return f"no {name!r} field"
+        if not isinstance(rec[name], kind):
+            return f"{name!r} is {rec[name]!r}"
+    return None
 
 
 log = logging.getLogger(__name__)
@@ -22,22 +52,43 @@ class OutcomeLog:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
 
-    def load(self) -> dict[tuple[str, str], dict]:
-        """Finished episodes by (policy, task_id); later lines win."""
+    def load(self, *, strict: bool = False) -> dict[tuple[str, str], dict]:
+        """Finished episodes by (policy, task_id); later lines win.
+
+        ``strict``: a line that is not a bench outcome raises BenchMismatchError naming it (and a
+        torn last line must at least start like one) instead of being skipped with a warning.
+        """
         out: dict[tuple[str, str], dict] = {}
         if not self.path.exists():
             return out
         with open(self.path, encoding="utf-8") as fh:
             for n, line in enumerate(fh, start=1):
                 if not line.endswith("\n"):
+                    if strict and not line.startswith("{"):
+                        self._refuse(n, "an unfinished line that is not a JSON object")
                     log.warning("%s:%d: ignoring a torn last line", self.path, n)
                     break
                 try:
                     rec = json.loads(line)
+                except json.JSONDecodeError as exc:
+                    if strict:
+                        self._refuse(n, f"not JSON ({exc.msg})")
+                    log.warning("%s:%d: ignoring an unreadable line", self.path, n)
+                    continue
+                problem = _outcome_problem(rec) if strict else None
+                if problem is not None:
+                    self._refuse(n, problem)
+                try:
                     out[(rec["policy"], rec["task_id"])] = rec
-                except (json.JSONDecodeError, KeyError, TypeError):
+                except (KeyError, TypeError):
                     log.warning("%s:%d: ignoring an unreadable line", self.path, n)
         return out
+
+    def _refuse(self, n: int, problem: str) -> None:
+        raise BenchMismatchError(
+            f"{self.path}:{n}: not a knotlab bench outcome line ({problem}), so this is not a "
+            "bench results folder to resume; use a new --out-dir"
+        )
 
     def _repair_tail(self) -> None:
         """Cut a torn last line so the next append starts on a fresh line."""

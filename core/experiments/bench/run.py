@@ -216,7 +216,7 @@ def run_bench(
 
     out = Path(out_dir)
     outcome_log = OutcomeLog(out / OUTCOMES_FILE)
-    finished = outcome_log.load()
+    finished = outcome_log.load(strict=True)  # another file's lines are refused, not skipped
     identity = RunIdentity(
         lib_hash,
         task_set.content_hash(),
