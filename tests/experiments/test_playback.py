@@ -132,5 +132,5 @@ def test_a_store_episode_plays_from_its_labelled_start(bench_run, tmp_path, caps
     assert ("(knot)" if replay.knot else "(no knot)") in said, said
     with Image.open(out) as gif:
         assert gif.n_frames > 3
-    assert cli.main(["playback", "db:x", "--db", url, "--out", str(out)]) == 2
+    assert cli.main(["playback", "db:x", "--db", url, "--out", str(tmp_path / "x.gif")]) == 2
     assert "integer id" in capsys.readouterr().err

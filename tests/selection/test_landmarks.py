@@ -122,6 +122,6 @@ def test_train_command_samples_landmarks_from_the_training_split(tmp_path, capsy
     model = QModel.load(out)
     assert len(model.landmarks) == 2
     assert "value_auc" in summary["validation"]
-    assert cli.main([*args, "--landmarks", "0,0"]) == 0
+    assert cli.main([*args, "--landmarks", "0,0", "--force"]) == 0  # replaces its own model
     assert QModel.load(out).landmarks is None
     assert cli.main([*args, "--landmarks", "5"]) == 2
