@@ -19,6 +19,7 @@ import numpy as np
 
 from knotlab.core.atomic import atomic_open
 from knotlab.core.errors import CorruptFileError
+from knotlab.core.textinput import LineError, parse_json
 
 _FIXED_TIME = (1980, 1, 1, 0, 0, 0)
 HEADER_KEY = "header_json"
@@ -59,10 +60,10 @@ def read_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict]:
         ) from exc
     if HEADER_KEY not in arrays:
         raise CorruptFileError(f"{path}: {kind} file has no header")
-    try:
-        header = json.loads(arrays.pop(HEADER_KEY).tobytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CorruptFileError(f"{path}: {kind} header is not valid JSON") from exc
+    try:  # bounded depth and integers, one line whatever the bytes (core.textinput)
+        header = parse_json(arrays.pop(HEADER_KEY).tobytes(), path)
+    except LineError as exc:
+        raise CorruptFileError(f"{path}: {kind} header is not valid ({exc.problem})") from None
     if not isinstance(header, dict):
         raise CorruptFileError(f"{path}: {kind} header is not a JSON object")
     return arrays, header

@@ -16,9 +16,8 @@ a bad row raises :class:`ImportRowError` naming the file, line and field, and no
 from __future__ import annotations
 
 import csv
-import io
 import json
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -30,6 +29,16 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledExecution, LabelledStep
 from knotlab.core.tasks import DEFAULT_TASK
+from knotlab.core.textinput import (
+    MAX_LINE_BYTES,
+    Line,
+    LineError,
+    parse_int,
+    parse_json,
+    parse_time,
+    quote,
+    read_lines,
+)
 from knotlab.labeling_db.errors import (
     ConflictError,
     ImportRowError,
@@ -70,6 +79,8 @@ CSV_COLUMNS: tuple[str, ...] = (
 _EXEC_FIELDS = CSV_COLUMNS[1:11]
 _STEP_FIELDS = CSV_COLUMNS[11:]
 CSV_TASK_COLUMNS: tuple[str, ...] = (*CSV_COLUMNS, "task")  # when an execution is not overhand
+MAX_NAME_CHARS = 200  # ids, names and keys: the store's key columns are String(200)
+SEED_RANGE = (-(2**31), 2**31)  # a state's seed is a 32-bit integer in the store
 
 
 def _task_of(item: StoredExecution) -> str | None:
@@ -225,28 +236,35 @@ class _Row:
                 return None
             raise self.fail(name, "must not be null")
         if kind == "str":
-            if not isinstance(v, str) or not v:
-                raise self.fail(name, f"expected a non-empty string, got {v!r}")
+            if not _is_name(v):
+                raise self.fail(
+                    name,
+                    f"expected a non-empty string of at most {MAX_NAME_CHARS} characters without "
+                    f"NUL, got {quote(v)}",
+                )
         elif kind == "int":
             if isinstance(v, bool) or not isinstance(v, int):
-                raise self.fail(name, f"expected an integer, got {v!r}")
+                raise self.fail(name, f"expected an integer, got {quote(v)}")
         elif kind == "bool":
             if not isinstance(v, bool):
-                raise self.fail(name, f"expected true or false, got {v!r}")
+                raise self.fail(name, f"expected true or false, got {quote(v)}")
         elif kind == "time":
             try:
-                ts = datetime.fromisoformat(v) if isinstance(v, str) else None
-            except ValueError:
-                ts = None
-            if ts is None or ts.tzinfo is None:
-                raise self.fail(name, f"expected an ISO 8601 time with a UTC offset, got {v!r}")
-            return ts
+                return parse_time(v)
+            except InvalidInputError as exc:
+                raise self.fail(name, str(exc)) from None
         elif kind == "dict":
             if not isinstance(v, dict):
                 raise self.fail(name, f"expected a JSON object, got {type(v).__name__}")
+            try:
+                json.dumps(v, allow_nan=False)
+            except ValueError:
+                raise self.fail(name, "contains NaN or infinite numbers") from None
         elif kind == "strlist":
-            if not isinstance(v, list) or not all(isinstance(x, str) and x for x in v):
-                raise self.fail(name, "expected a list of non-empty strings")
+            if not isinstance(v, list) or not all(_is_name(x) for x in v):
+                raise self.fail(
+                    name, f"expected a list of non-empty strings of at most {MAX_NAME_CHARS} chars"
+                )
         elif kind == "vector":
             return self._array(name, v, 1)
         elif kind == "cloud":
@@ -270,8 +288,12 @@ class _Row:
     def enum(self, name: str, allowed: tuple[str, ...]) -> str:
         v = self.get(name, "str")
         if v not in allowed:
-            raise self.fail(name, f"must be one of {allowed}, got {v!r}")
+            raise self.fail(name, f"must be one of {allowed}, got {quote(v)}")
         return v
+
+
+def _is_name(v: object) -> bool:
+    return isinstance(v, str) and 0 < len(v) <= MAX_NAME_CHARS and "\x00" not in v
 
 
 def _parse_step(row: _Row, i: int) -> tuple[LabelledStep, datetime | None, StateProvenance]:
@@ -297,10 +319,13 @@ def _parse_step(row: _Row, i: int) -> tuple[LabelledStep, datetime | None, State
 
 
 def _provenance(row: _Row) -> StateProvenance:
+    seed = row.get("state_seed", "int", optional=True)
+    if seed is not None and not SEED_RANGE[0] <= seed < SEED_RANGE[1]:
+        raise row.fail("state_seed", f"expected a 32-bit integer, got {quote(seed)}")
     return StateProvenance(
         row.get("state_task_id", "str", optional=True),
         row.get("state_episode_step", "int", optional=True),
-        row.get("state_seed", "int", optional=True),
+        seed,
     )
 
 
@@ -354,27 +379,28 @@ def _build(
         raise row.fail("", str(exc)) from exc
 
 
-def _read_jsonl(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
-    lines = text.splitlines()
-    if not lines:
+def _read_jsonl(lines: Iterable[Line], path: str) -> Iterator[tuple[int, StoredExecution]]:
+    it = iter(lines)
+    first = next(it, None)
+    if first is None:
         raise ImportRowError(path, 1, "format", "file is empty (expected a knotlab-labels header)")
     try:
-        header = json.loads(lines[0])
-    except json.JSONDecodeError as exc:
-        raise ImportRowError(path, 1, "format", f"header is not JSON ({exc.msg})") from exc
+        header = parse_json(first.text, path, 1)
+    except LineError as exc:
+        raise ImportRowError(path, 1, "format", f"header is {exc.problem}") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise ImportRowError(path, 1, "format", f"expected {FORMAT_NAME!r} header")
     if header.get("version") != FORMAT_VERSION:
         raise ImportRowError(
-            path, 1, "version", f"version {header.get('version')!r} is not {FORMAT_VERSION}"
+            path, 1, "version", f"version {quote(header.get('version'))} is not {FORMAT_VERSION}"
         )
-    for n, line in enumerate(lines[1:], start=2):
+    for n, line, _, _ in it:
         if not line.strip():
             continue
         try:
-            data = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise ImportRowError(path, n, "(line)", f"not valid JSON ({exc.msg})") from exc
+            data = parse_json(line, path, n)
+        except LineError as exc:
+            raise ImportRowError(path, n, "(line)", exc.problem) from None
         if not isinstance(data, dict):
             raise ImportRowError(path, n, "(line)", "expected a JSON object")
         row = _Row(path, n, data)
@@ -408,19 +434,17 @@ def _csv_row(path: str, line: int, raw: dict[str, str]) -> _Row:
             data[name] = None
         elif name in _JSON_CELLS:
             try:
-                data[name] = json.loads(cell)
-            except json.JSONDecodeError as exc:
-                raise ImportRowError(path, line, name, f"not valid JSON ({exc.msg})") from exc
+                data[name] = parse_json(cell, path, line)
+            except LineError as exc:
+                raise ImportRowError(path, line, name, exc.problem) from None
         elif name in _INT_CELLS:
             try:
-                data[name] = int(cell)
-            except ValueError as exc:
-                raise ImportRowError(
-                    path, line, name, f"expected an integer, got {cell!r}"
-                ) from exc
+                data[name] = parse_int(cell, path, line)
+            except LineError as exc:
+                raise ImportRowError(path, line, name, exc.problem) from None
         elif name == "ended_in_knot":
             if cell not in ("true", "false"):
-                raise ImportRowError(path, line, name, f"expected true or false, got {cell!r}")
+                raise ImportRowError(path, line, name, f"expected true or false, got {quote(cell)}")
             data[name] = cell == "true"
         else:
             data[name] = cell
@@ -428,10 +452,13 @@ def _csv_row(path: str, line: int, raw: dict[str, str]) -> _Row:
     return _Row(path, line, data)
 
 
-def _read_csv(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
-    reader = csv.reader(io.StringIO(text, newline=""))
+def _read_csv(lines: Iterable[Line], path: str) -> Iterator[tuple[int, StoredExecution]]:
+    # Cells as long as the boundary's lines (a big cloud); the csv module's default is 128 kB.
+    csv.field_size_limit(max(csv.field_size_limit(), MAX_LINE_BYTES))
+    reader = csv.reader(line.text + "\n" if line.complete else line.text for line in lines)
+    rows = _csv_rows(reader, path)
     try:
-        header = next(reader)
+        header = next(rows)
     except StopIteration:
         raise ImportRowError(path, 1, "header", "file is empty (expected a header row)") from None
     columns = tuple(header)
@@ -442,7 +469,7 @@ def _read_csv(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
     current: _Row | None = None
     steps: list[tuple[LabelledStep, datetime | None, StateProvenance]] = []
     dead: list[tuple[DeadEndState, StateProvenance]] = []
-    for cells in reader:
+    for cells in rows:
         line = reader.line_num
         if not cells:
             continue
@@ -471,6 +498,19 @@ def _read_csv(text: str, path: str) -> Iterator[tuple[int, StoredExecution]]:
         yield current.line, _build(current, steps, dead)
 
 
+def _csv_rows(reader: Any, path: str) -> Iterator[list[str]]:
+    """The rows of a csv reader; its errors (a NUL, an over-long cell) name the line."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            problem = f"not CSV ({quote(str(exc))})"
+            raise ImportRowError(path, reader.line_num, "(row)", problem) from None
+        yield row
+
+
 def detect_format(path: str | Path) -> Format:
     """The format of a labels file from its extension (.jsonl or .csv)."""
     suffix = Path(path).suffix.lower()
@@ -487,21 +527,19 @@ def read_labels(path: str | Path, fmt: Format | None = None) -> list[StoredExecu
     if not Path(path).is_file():
         what = "is a folder, not a labels file" if Path(path).is_dir() else "labels file not found"
         raise FileNotFoundError(f"{path}: {what}")
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise ImportRowError(str(path), 1, "(file)", f"not UTF-8 text ({exc.reason})") from exc
     reader = _read_jsonl if fmt == "jsonl" else _read_csv
     items = []
     seen: dict[str, int] = {}
-    for line, item in reader(text, str(path)):
-        key = item.execution.execution_id
-        if key in seen:
-            raise ImportRowError(
-                str(path), line, "execution_id", f"{key!r} was already given on line {seen[key]}"
-            )
-        seen[key] = line
-        items.append(item)
+    try:  # lines split on "\n" only, bounded, decoded one at a time (core.textinput)
+        for line, item in reader(read_lines(path), str(path)):
+            key = item.execution.execution_id
+            if key in seen:
+                problem = f"{quote(key)} was already given on line {seen[key]}"
+                raise ImportRowError(str(path), line, "execution_id", problem)
+            seen[key] = line
+            items.append(item)
+    except LineError as exc:  # an over-long line, or one that is not UTF-8
+        raise ImportRowError(str(path), exc.line or 1, "(line)", exc.problem) from None
     return items
 
 

@@ -4,6 +4,8 @@ retrain and model list. Widgets only: every action calls back into the tab contr
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -124,9 +126,13 @@ class LabelPanels:
             if self.model_dropdown.value in self._model_options:
                 a.use_model(self._model_options[self.model_dropdown.value])
 
+        self._try = a.try_
+        # While the name prompt is open, Enter submits it: the Enter hotkey is global, so
+        # without this a keyboard-only labeller's Enter in the name field would be a Try.
+        self._submit_name: Callable[[], bool] | None = None
         gui = self.client.gui
         keys: list[tuple[str, str, Callable[[], None]]] = [
-            ("Try the selected candidate", "enter", a.try_),
+            ("Try the selected candidate", "enter", self._enter),
             ("Accept", "Y", a.accept),
             ("Reject", "N", a.reject),
             ("Dead end", "F", a.dead_end),
@@ -143,21 +149,52 @@ class LabelPanels:
 
     # ------------------------------------------------------------------ name
     def ask_name(self, on_name: Callable[[str], None]) -> None:
-        """A modal asking the labeller's name once per browser."""
+        """A modal asking the labeller's name once per browser; Enter in the field, Enter on
+        the button and a click all start (the field sits in a form, which submits on Enter)."""
         modal = self.client.gui.add_modal("Who is labelling?")
         with modal:
             self.client.gui.add_markdown(
                 "Your name is stored with every label you make (and kept in this browser)."
             )
-            name = self.client.gui.add_text("Your name", "")
+            with self.client.gui.add_form(None) as form:
+                name = self.client.gui.add_text("Your name", "")
             start = self.client.gui.add_button("Start labelling", color="green")
+        lock = threading.Lock()
+
+        def submit() -> bool:
+            """Start with the typed name, once; False when the field is still empty."""
+            with lock:
+                value = name.value.strip()
+                if not value or self._submit_name is None:
+                    return False
+                self._submit_name = None
+            modal.close()
+            on_name(value)
+            return True
+
+        self._submit_name = submit
 
         @start.on_click
-        def _(_e) -> None:
-            value = name.value.strip()
-            if value:
-                modal.close()
-                on_name(value)
+        def _(_e: object) -> None:
+            submit()
+
+        @form.on_submit
+        def _(_e: object) -> None:
+            # viser's client sends field edits at most every 50 ms through one pending slot, which
+            # the submit takes over: a key typed within 50 ms before Enter never reaches us
+            # (docs/reference/viser.md). At a person's typing pace that does not happen.
+            self._enter()
+
+    def _enter(self) -> None:
+        """Enter: submit the name prompt while it is open, else try the selected candidate."""
+        submit = self._submit_name
+        if submit is None:
+            self._try()
+            return
+        # The field's last keystrokes may reach the server just after the Enter key does.
+        deadline = time.monotonic() + 1.0
+        while not submit() and self._submit_name is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
 
     # ------------------------------------------------------------------ state
     def show(self, view: SessionView) -> None:

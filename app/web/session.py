@@ -446,6 +446,12 @@ class LabelSession:
         with self._lock:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
+            if self.episode is None or self.store.episode(self.episode.episode_id).n_labels == 0:
+                # A finished episode stays finished: undoing into it would silently abandon
+                # the rope on screen.
+                raise SessionError(
+                    "nothing to undo on this rope: no step of it has been accepted yet"
+                )
             undone = self.store.undo_last_label(self.labeller)
             if undone is None:
                 raise SessionError("nothing to undo")

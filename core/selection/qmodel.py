@@ -17,6 +17,7 @@ from knotlab.core.errors import CorruptFileError, InvalidInputError
 from knotlab.core.hashing import ContentHash
 from knotlab.core.selection.feature_spec import FeatureSpec
 from knotlab.core.selection.landmarks import Landmarks
+from knotlab.core.textinput import LineError, parse_json
 
 QMODEL_FORMAT_VERSION = 1
 
@@ -166,8 +167,10 @@ class QModel:
             raise CorruptFileError(f"{path}: not a readable knotlab model file ({exc})") from exc
         if "meta" not in arrays:
             raise CorruptFileError(f"{path}: model file lacks ['meta']")
-        try:
-            meta = json.loads(arrays.pop("meta").tobytes().decode())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise CorruptFileError(f"{path}: model metadata is not valid JSON") from exc
+        try:  # bounded depth and integers, one line whatever the bytes (core.textinput)
+            meta = parse_json(arrays.pop("meta").tobytes(), path)
+        except LineError as exc:
+            raise CorruptFileError(
+                f"{path}: model metadata is not valid ({exc.problem})"
+            ) from None
         return cls.from_parts(arrays, meta, str(path))

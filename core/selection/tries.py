@@ -16,14 +16,15 @@ File format (JSONL, one object per labelled state): {"execution_id", "step_index
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.selection.learner import TrainingData
+from knotlab.core.textinput import LineError, parse_json, quote, read_lines
 
 
 @dataclass(frozen=True)
@@ -73,24 +74,47 @@ def read_tries(path: str | Path) -> TriesByState:
             f"{path}: no such tries file (make one with `knotlab labels tries`)"
         )
     out: TriesByState = {}
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for n, line, _, _ in read_lines(path):  # split on "\n" only, bounded (core.textinput)
         if not line.strip():
             continue
         try:
-            d = json.loads(line)
-            rec = StateTries(
-                str(d["execution_id"]),
-                int(d["step_index"]),
-                int(d["stage_before"]),
-                tuple(
-                    TriedDemo(str(t["demo"]), int(t["stage"]), bool(t["knot"]), t["failure"])
-                    for t in d["tried"]
-                ),
-            )
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise InvalidInputError(f"{path}:{n}: not a tried-candidates line ({exc})") from exc
+            rec = _state_tries(parse_json(line, path, n))
+        except LineError as exc:
+            raise InvalidInputError(
+                f"{path}:{n}: not a tried-candidates line ({exc.problem})"
+            ) from None
+        except ValueError as exc:
+            raise InvalidInputError(f"{path}:{n}: not a tried-candidates line ({exc})") from None
         out[(rec.execution_id, rec.step_index)] = rec
     return out
+
+
+def _field(d: dict, name: str, kind: type | tuple[type, ...]) -> Any:
+    if name not in d:
+        raise ValueError(f"no {name!r} field")
+    v = d[name]
+    if not isinstance(v, kind) or (isinstance(v, bool) and kind is int):
+        raise ValueError(f"{name!r} is {quote(v)}")
+    return v
+
+
+def _state_tries(d: object) -> StateTries:
+    """The record of one parsed line; ValueError saying what is wrong."""
+    if not isinstance(d, dict):
+        raise ValueError(f"a JSON {type(d).__name__}, not an object")
+    tried = []
+    for t in _field(d, "tried", list):
+        if not isinstance(t, dict):
+            raise ValueError(f"a tried entry is {quote(t)}")
+        failure = _field(t, "failure", (str, type(None)))
+        tried.append(TriedDemo(_field(t, "demo", str), _field(t, "stage", int),
+                               _field(t, "knot", bool), failure))  # fmt: skip
+    return StateTries(
+        _field(d, "execution_id", str),
+        _field(d, "step_index", int),
+        _field(d, "stage_before", int),
+        tuple(tried),
+    )
 
 
 def apply_tries(

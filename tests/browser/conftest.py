@@ -190,8 +190,19 @@ class Tab:
         self.page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
 
 
-def open_tab(browser, app, name: str | None, *, context=None, timeout: float = 30.0) -> Tab:
-    """Open the app in a new page, give the labeller's name if asked, wait for a drawn state."""
+def open_tab(
+    browser,
+    app,
+    name: str | None,
+    *,
+    context=None,
+    timeout: float = 30.0,
+    submit: str = "click",
+) -> Tab:
+    """Open the app in a new page, give the labeller's name if asked, wait for a drawn state.
+
+    ``submit``: how the name is sent: "click" the button, or "enter" in the field (keyboard
+    only)."""
     ctx = context or browser.new_context(viewport={"width": 1280, "height": 760})
     before = {t.client.client_id for t in app.tabs()}
     page = ctx.new_page()
@@ -213,8 +224,20 @@ def open_tab(browser, app, name: str | None, *, context=None, timeout: float = 3
             .locator("input:not([type='hidden'])")
         )
         field.wait_for(timeout=timeout * 1000)
-        field.fill(name)
-        page.get_by_role("button", name="Start labelling").click()
+        if submit == "enter":
+            field.click()
+            # At a person's pace: viser drops a keystroke sent within 50 ms before the submit.
+            page.keyboard.type(name, delay=120)
+            page.wait_for_timeout(120)
+            page.keyboard.press("Enter")
+        elif submit == "button-enter":  # Tab from the field to the button, then Enter
+            field.click()
+            page.keyboard.type(name, delay=120)
+            page.keyboard.press("Tab")
+            page.keyboard.press("Enter")
+        else:
+            field.fill(name)
+            page.get_by_role("button", name="Start labelling").click()
     wait_until(lambda: tab.ready.is_set(), timeout, "the first state to be drawn")
     return Tab(page, ctx, tab, errors)
 

@@ -366,3 +366,14 @@ def test_agreement_panel_lists_a_disagreement_and_opens_it_in_inspect(tabs, app,
     inspect = tab.server_tab.inspect
     both = {base.steps[0].chosen_demo, other}
     wait_until(lambda: {inspect.cand_a.value, inspect.cand_b.value} == both, 60, "both picks")
+
+
+def test_enter_in_the_name_field_starts_labelling_keyboard_only(tabs):
+    tab = tabs("kai", submit="enter")
+    assert tab.session.labeller == "kai"
+    assert tab.session.view().phase is Phase.CHOOSING
+
+
+def test_enter_on_the_focused_start_button_starts_labelling(tabs):
+    tab = tabs("lin", submit="button-enter")
+    assert tab.session.labeller == "lin"

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TextIO
 
 from knotlab.core.errors import KnotlabError
+from knotlab.core.textinput import LineError, parse_json, read_lines
 
 OUTCOMES_FILE = "outcomes.jsonl"
 # What every line bench writes holds (core.experiments.episode.EpisodeRecord.to_dict), by type.
@@ -61,27 +62,29 @@ class OutcomeLog:
         out: dict[tuple[str, str], dict] = {}
         if not self.path.exists():
             return out
-        with open(self.path, encoding="utf-8") as fh:
-            for n, line in enumerate(fh, start=1):
-                if not line.endswith("\n"):
-                    if strict and not line.startswith("{"):
-                        self._refuse(n, "an unfinished line that is not a JSON object")
-                    log.warning("%s:%d: ignoring a torn last line", self.path, n)
-                    break
-                try:
-                    rec = json.loads(line)
-                except json.JSONDecodeError as exc:
-                    if strict:
-                        self._refuse(n, f"not JSON ({exc.msg})")
-                    log.warning("%s:%d: ignoring an unreadable line", self.path, n)
-                    continue
-                problem = _outcome_problem(rec) if strict else None
+        # split on "\n" only, bounded, decoded line by line (core.textinput)
+        for n, line, complete, problem in read_lines(self.path, raise_errors=False):
+            if not complete:
+                if strict and not line.startswith("{"):
+                    self._refuse(n, "an unfinished line that is not a JSON object")
+                log.warning("%s:%d: ignoring a torn last line", self.path, n)
+                break
+            try:
                 if problem is not None:
-                    self._refuse(n, problem)
-                try:
-                    out[(rec["policy"], rec["task_id"])] = rec
-                except (KeyError, TypeError):
-                    log.warning("%s:%d: ignoring an unreadable line", self.path, n)
+                    raise LineError(self.path, n, problem)
+                rec = parse_json(line, self.path, n)
+            except LineError as exc:
+                if strict:
+                    self._refuse(n, exc.problem)
+                log.warning("%s:%d: ignoring an unreadable line (%s)", self.path, n, exc.problem)
+                continue
+            wrong = _outcome_problem(rec) if strict else None
+            if wrong is not None:
+                self._refuse(n, wrong)
+            try:
+                out[(rec["policy"], rec["task_id"])] = rec
+            except (KeyError, TypeError):
+                log.warning("%s:%d: ignoring an unreadable line", self.path, n)
         return out
 
     def _refuse(self, n: int, problem: str) -> None:

@@ -202,3 +202,15 @@ def test_with_overlap_a_second_labeller_gets_a_start_another_holds(store, resour
         assert c.episode.start_state_id != a.episode.start_state_id
     finally:
         resources.overlap = None
+
+
+def test_undo_on_a_fresh_rope_leaves_the_finished_episode_finished(store, resources):
+    s = _session(store, resources, max_steps=1)
+    _accept_something(s)  # step limit 1: the episode is finished, a fresh rope is claimed
+    fresh = s.view().task_id
+    with pytest.raises(SessionError, match="nothing to undo on this rope"):
+        s.undo()
+    assert s.view().task_id == fresh and s.view().step_index == 0
+    assert len(store.labels(labeller="ann")) == 1
+    (done,) = [e for e in store.stored_executions() if e.status == "completed"]
+    assert len(done.execution.steps) == 1
