@@ -5,6 +5,8 @@ and the stage reached per step, and export to a GIF for slides. Draws under /pla
 
 from __future__ import annotations
 
+import contextlib
+import json
 import tempfile
 import threading
 import time
@@ -33,10 +35,26 @@ STORE = "labelling store (episode id)"
 
 
 def results_dirs(root: Path = defaults.RESULTS_DIR) -> list[str]:
-    """Bench results directories under results/ (those with a run.json)."""
+    """Bench results directories under results/ (those with a run.json), main level first."""
     if not root.is_dir():
         return []
-    return sorted(str(p.parent) for p in root.glob("*/run.json"))
+    found = sorted(str(p.parent) for p in root.glob("*/run.json"))
+    return sorted(found, key=lambda d: (not d.endswith("_main"), d))
+
+
+def first_task_id(results_dir: str) -> str | None:
+    """The task id of the first episode a results directory records (None if it has none)."""
+    path = Path(results_dir) / "outcomes.jsonl"
+    try:
+        with path.open(encoding="utf-8") as fh:
+            for line in fh:
+                with contextlib.suppress(ValueError):
+                    task_id = json.loads(line).get("task_id")
+                    if isinstance(task_id, str):
+                        return task_id
+    except OSError:
+        return None
+    return None
 
 
 class PlaybackPanel:
@@ -54,9 +72,12 @@ class PlaybackPanel:
         self._store_execution = store_executions
         self._set_label_visible = set_label_visible
         gui = client.gui
-        self.source = gui.add_dropdown("Source", (*results_dirs(), STORE))
+        sources = (*results_dirs(), STORE)
+        self.source = gui.add_dropdown("Source", sources)
         self.policy = gui.add_text("Policy", "la2x5")
-        self.task = gui.add_text("Task or episode id", "main-test-0000")
+        # The default task is one the default source holds, and follows the source.
+        self.task = gui.add_text("Task or episode id", first_task_id(sources[0]) or "0")
+        self.source.on_update(lambda _e: self._default_task())
         self.load_button = gui.add_button("Load and replay", icon=viser.Icon.PLAYER_PLAY)
         self.status = gui.add_markdown("Pick an episode of the last Table I run, then Load.")
         self.timeline = gui.add_slider("Frame", 0, 1, 1, 0, disabled=True)
@@ -136,14 +157,24 @@ class PlaybackPanel:
         self.show(0)
         self.toggle()
 
+    def _default_task(self) -> None:
+        """A results source's first task id, or an episode number for the store."""
+        source = str(self.source.value)
+        self.task.value = "1" if source == STORE else (first_task_id(source) or "")  # type: ignore[misc]
+
     # ------------------------------------------------------------------ playing
     def toggle(self) -> None:
-        """Play from the timeline's frame, or pause."""
+        """Play from the timeline's frame (from the start when at the end), or pause."""
         if self._playing.is_set():
             self._playing.clear()
             return
         if self.replay is None:
             return
+        if self.frame >= len(self.replay) - 1:  # Play at the end plays it again
+            self._updating = True
+            self.timeline.value = 0  # type: ignore[misc]
+            self._updating = False
+            self.show(0)
         self._playing.set()
         self._player = threading.Thread(target=self._play, name="playback", daemon=True)
         self._player.start()

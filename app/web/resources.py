@@ -46,7 +46,9 @@ class RankingModel:
         """How the GUI names it."""
         if self.model is None:
             return "nearest neighbour (no model)"
-        return f"{self.version} ({self.source})"
+        # A file path is named by its file: the panel is narrow and the folder says nothing.
+        source = Path(self.source).name if "/" in self.source else self.source
+        return f"{self.version} ({source})"
 
 
 def qmodel_from_store(store: Store, version: str | None = None) -> QModel:

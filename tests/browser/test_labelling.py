@@ -377,3 +377,19 @@ def test_enter_in_the_name_field_starts_labelling_keyboard_only(tabs):
 def test_enter_on_the_focused_start_button_starts_labelling(tabs):
     tab = tabs("lin", submit="button-enter")
     assert tab.session.labeller == "lin"
+
+
+def test_playback_defaults_load_and_play_at_the_end_starts_again(tabs):
+    tab = tabs("ola")
+    page = tab.page
+    panel = tab.server_tab.playback
+    page.get_by_role("tab", name="Playback").click()
+    assert str(panel.source.value).endswith("table1_main")  # the default source and task agree
+    assert panel.task.value == "main-test-0000"
+    page.get_by_role("button", name="Load and replay").click()
+    wait_until(lambda: panel.replay is not None, 120, "the default episode's replay")
+    assert "no episode" not in panel.status.content
+    wait_until(lambda: not panel._playing.is_set(), 120, "the replay to play to its end")
+    assert panel.frame == len(panel.replay) - 1
+    page.get_by_role("button", name="Play / pause").click()
+    wait_until(lambda: 0 < panel.frame < len(panel.replay) - 1, 20, "playing again from the start")
