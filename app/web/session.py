@@ -432,6 +432,7 @@ class LabelSession:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
             old = self.episode
+            self.message = ""  # what was said about the old rope is not about the new one
             # Claim the next start while this one is still held, so R never hands back the
             # rope just abandoned (unless it is the only one left).
             self._claim_next()

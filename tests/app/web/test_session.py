@@ -214,3 +214,13 @@ def test_undo_on_a_fresh_rope_leaves_the_finished_episode_finished(store, resour
     assert len(store.labels(labeller="ann")) == 1
     (done,) = [e for e in store.stored_executions() if e.status == "completed"]
     assert len(done.execution.steps) == 1
+
+
+def test_a_new_rope_after_a_dead_end_clears_the_dead_end_message(store, resources):
+    s = _session(store, resources)
+    while not s.try_selected().acceptable:
+        s.reject()
+    s.dead_end()
+    assert "dead end" in s.view().message
+    s.resample()
+    assert "dead end" not in s.view().message
