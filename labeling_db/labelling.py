@@ -301,11 +301,14 @@ class LabellingStore(StoreBase):
         provenance: StateProvenance | None = None,
         labelled_at: datetime | None = None,
         next_nodes_k3: np.ndarray | None = None,
+        finish: bool = False,
     ) -> LabelInfo:
         """Append the next step's label to an in-progress episode (step 0 uses the start state).
 
         ``next_nodes_k3``, the rope after the accepted step, is kept with the episode in the same
-        transaction so that an interrupted labelling session resumes from exactly there.
+        transaction so that an interrupted labelling session resumes from exactly there. With
+        ``finish`` the episode is completed in that transaction too (its last step): a crash can
+        never leave the last label stored on an episode that is still open.
         """
         resume = None if next_nodes_k3 is None else _resume_nodes(next_nodes_k3)
         if not isinstance(step, LabelledStep):
@@ -343,6 +346,8 @@ class LabellingStore(StoreBase):
                 ep.meta = {**(ep.meta or {}), "resume_nodes": resume}
             with self._conflicts(f"episode {episode_id} already has step {step.step_index}"):
                 s.flush()
+            if finish:
+                _close_episode(s, ep, "completed")
             return _label_info(label, ep, ep.labeller.name)
 
         return self._run(work, write=True)
@@ -376,16 +381,7 @@ class LabellingStore(StoreBase):
 
         def work(s: Session) -> EpisodeInfo:
             ep = self._locked_episode(s, episode_id)
-            last = s.scalars(
-                select(Label.outcome)
-                .where(Label.episode_id == ep.id)
-                .order_by(Label.step_index.desc())
-                .limit(1)
-            ).first()
-            ep.status = status
-            ep.ended_in_knot = last == StepOutcome.KNOT
-            ep.finished_at = utcnow()
-            s.flush()
+            _close_episode(s, ep, status)
             return _episode_info(s, ep)
 
         return self._run(work, write=True)
@@ -560,3 +556,18 @@ class LabellingStore(StoreBase):
             return [_label_info(lab, ep, name) for lab, ep, name in s.execute(q)]
 
         return self._run(work, write=False)
+
+
+def _close_episode(s: Session, ep: Episode, status: str) -> None:
+    """Mark ``ep`` finished (in the caller's transaction); it ended in a knot iff its last
+    label's outcome is a knot."""
+    last = s.scalars(
+        select(Label.outcome)
+        .where(Label.episode_id == ep.id)
+        .order_by(Label.step_index.desc())
+        .limit(1)
+    ).first()
+    ep.status = status
+    ep.ended_in_knot = last == StepOutcome.KNOT
+    ep.finished_at = utcnow()
+    s.flush()

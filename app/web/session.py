@@ -369,16 +369,17 @@ class LabelSession:
                 candidate_scores_c=np.array([c.ranked.score for c in self.candidates]),
                 model_version=self.ranking.version,
             )
+            ends = result.word == StepOutcome.KNOT or self.step_index + 1 >= self.max_steps
             self.store.add_label(
                 self.episode.episode_id,
                 step,
                 provenance=StateProvenance(self.task_id, self.step_index, None),
                 next_nodes_k3=result.outcome.nodes_after_k3,
+                finish=ends,  # the last label and the episode's end in one transaction
             )
             self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({result.word})")
             self.step_index += 1
-            if result.word == StepOutcome.KNOT or self.step_index >= self.max_steps:
-                self.store.finish_episode(self.episode.episode_id, status="completed")
+            if ends:
                 done = "knot tied" if result.word == StepOutcome.KNOT else "step limit reached"
                 self._claim_next()
                 self.message = f"episode done ({done}); next start loaded"

@@ -224,3 +224,21 @@ def test_a_new_rope_after_a_dead_end_clears_the_dead_end_message(store, resource
     assert "dead end" in s.view().message
     s.resample()
     assert "dead end" not in s.view().message
+
+
+def test_the_last_label_and_the_episodes_end_are_one_transaction(store, resources, monkeypatch):
+    s = _session(store, resources, max_steps=1)
+    episode_id = s.episode.episode_id
+
+    def crash(*_a, **_k):  # the server dying between two transactions
+        raise RuntimeError("crash")
+
+    monkeypatch.setattr(store, "finish_episode", crash)
+    try:
+        _accept_something(s)
+    except RuntimeError:
+        pass
+    info = store.episode(episode_id)
+    # Never a stored last step on an episode that is still open (a resume would land on a
+    # knotted rope at "step 2 of 1"): both or neither.
+    assert (info.n_labels, info.status) in ((1, "completed"), (0, "in_progress"))
