@@ -38,6 +38,13 @@ class Actions:
     follow: Callable[[bool], None]
 
 
+def judged_suffix(rank: int, view: SessionView) -> str:
+    """How a judged candidate reads in the list: a dead end is not a reject."""
+    if rank in view.dead_ends:
+        return " · dead end"
+    return " · rejected" if rank in view.rejected else ""
+
+
 def _bind(fn: Callable[[int], None], arg: int) -> Callable[[], None]:
     """fn with its argument fixed (a closure per rank: a lambda in a loop would share r)."""
     return lambda: fn(arg)
@@ -208,7 +215,7 @@ class LabelPanels:
         ]
         if view.last_try is not None:
             t = view.last_try
-            lines.append(f"tried #{t.rank} {t.demo_key}: **{t.word}** ({t.wall_s:.1f} s)")
+            lines.append(f"tried #{t.rank} {t.demo_key}: **{t.summary}** ({t.wall_s:.1f} s)")
         self._set(self.status, "content", "  \n".join(lines))
         shown = {c.ranked.rank: c for c in view.candidates}
         for r, button in enumerate(self.cand_buttons, start=1):
@@ -218,7 +225,7 @@ class LabelPanels:
                 continue
             rejected = r in view.rejected
             cost = f"cost {c.ranked.nn_cost:.3f}"
-            label = candidate_label(c) + f" · {cost}" + (" · rejected" if rejected else "")
+            label = candidate_label(c) + f" · {cost}" + judged_suffix(r, view)
             self._set(button, "label", label)
             self._set(button, "color", "gray" if rejected else rank_colour(r))
             self._set(button, "icon", viser.Icon.ARROW_RIGHT if r == view.selected else None)

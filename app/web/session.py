@@ -94,6 +94,29 @@ class TryResult:
     word: StepOutcome | FailureKind  # PROGRESSED, KNOT, or the try's failure kind
     cloud_after_n3: np.ndarray | None
     wall_s: float
+    stage_before: int = 0  # the task's stage of the state the try started from
+    stage_names: tuple[str, ...] = ()  # the task's names of its stages
+
+    @property
+    def summary(self) -> str:
+        """What the try did, honestly: the stage reached (with its crossing code) and whether
+        that is further than before, or the failure."""
+        if self.word not in (StepOutcome.PROGRESSED, StepOutcome.KNOT):
+            return str(getattr(self.word, "value", self.word))
+        names = self.stage_names
+        after = int(self.outcome.stage)
+
+        def name(stage: int) -> str:
+            return names[stage] if 0 <= stage < len(names) else f"stage {stage}"
+
+        code = f" ({self.outcome.gauss_code})" if self.outcome.gauss_code else ""
+        if self.outcome.knot:
+            return f"{name(after)}{code}"
+        if after > self.stage_before:
+            return f"{name(after)}{code}: advanced from {name(self.stage_before)}"
+        if after == self.stage_before:
+            return f"nothing gained: still {name(after)}{code}"
+        return f"went back to {name(after)}{code} from {name(self.stage_before)}"
 
     @property
     def acceptable(self) -> bool:
@@ -114,12 +137,13 @@ class SessionView:
     cloud_n3: np.ndarray | None
     candidates: list[Candidate]
     selected: int | None  # rank
-    rejected: frozenset[int]  # ranks greyed out
+    rejected: frozenset[int]  # ranks greyed out (rejected or marked dead ends)
     model: str
     last_try: TryResult | None
     message: str = ""
     rank_s: float = 0.0
     history: list[str] = field(default_factory=list)
+    dead_ends: frozenset[int] = frozenset()  # ranks whose try was stored as a dead end
 
 
 class LabelSession:
@@ -159,6 +183,7 @@ class LabelSession:
         self.candidates: list[Candidate] = []
         self.selected: int | None = None
         self.rejected: set[int] = set()
+        self.dead_ends: set[int] = set()
         self.last_try: TryResult | None = None
         self.message = ""
         self.rank_s = 0.0
@@ -185,6 +210,7 @@ class LabelSession:
                 message=self.message,
                 rank_s=self.rank_s,
                 history=list(self.history),
+                dead_ends=frozenset(self.dead_ends),
             )
 
     def candidate(self, rank: int) -> Candidate:
@@ -255,6 +281,7 @@ class LabelSession:
         self.candidates = [self._candidate(r, scan) for r in ranked]
         self.selected = self.candidates[0].ranked.rank if self.candidates else None
         self.rejected = set()
+        self.dead_ends = set()
         self.last_try = None
         self.phase = Phase.CHOOSING
         self.rank_s = time.perf_counter() - t0
@@ -304,8 +331,10 @@ class LabelSession:
                 raise SessionError(f"candidate {self.selected} was rejected; select another")
             cand = self.candidate(self.selected)
             self.phase = Phase.TRYING
-            snapshot, cloud = self.snapshot, self.cloud_n3
+            snapshot, cloud, nodes = self.snapshot, self.cloud_n3, self.nodes_k3
         assert snapshot is not None and cloud is not None
+        task = self.res.task
+        stage_before = task.stage(nodes).stage if nodes is not None else 0
         t0 = time.perf_counter()
         rec = recorder if recorder is not None else FrameRecorder(FRAME_DT)
         try:
@@ -337,6 +366,8 @@ class LabelSession:
             word,
             after,
             time.perf_counter() - t0,
+            stage_before,
+            task.stage_names,
         )
         with self._lock:
             if self.phase is not Phase.TRYING:  # the tab closed meanwhile: nothing to judge
@@ -407,6 +438,7 @@ class LabelSession:
                     DeadEndState(result.cloud_after_n3, result.outcome.nodes_after_k3),
                     provenance=StateProvenance(self.task_id, self.step_index, None),
                 )
+            self.dead_ends.add(result.rank)
             self._restore_after(result.rank)
             self.message = f"stored a dead end after {result.demo_key}"
             return self.view()
@@ -525,5 +557,5 @@ def _try_message(result: TryResult) -> str:
     if result.word == StepOutcome.KNOT:
         return f"{result.demo_key} tied the knot: Y to accept"
     if result.word == StepOutcome.PROGRESSED:
-        return f"{result.demo_key} executed: Y accept, N reject, F dead end"
+        return f"{result.demo_key}: {result.summary}; Y accept, N reject, F dead end"
     return f"{result.demo_key}: {result.word}; N to reject or F to mark a dead end"

@@ -5,6 +5,8 @@ Real parts: the shipped library and training starts, the simulator and a SQLite 
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 
@@ -234,11 +236,45 @@ def test_the_last_label_and_the_episodes_end_are_one_transaction(store, resource
         raise RuntimeError("crash")
 
     monkeypatch.setattr(store, "finish_episode", crash)
-    try:
+    with contextlib.suppress(RuntimeError):
         _accept_something(s)
-    except RuntimeError:
-        pass
     info = store.episode(episode_id)
     # Never a stored last step on an episode that is still open (a resume would land on a
     # knotted rope at "step 2 of 1"): both or neither.
     assert (info.n_labels, info.status) in ((1, "completed"), (0, "in_progress"))
+
+
+def test_a_try_says_the_stage_it_reached_and_whether_that_is_progress(store, resources):
+    s = _session(store, resources)
+    names = resources.task.stage_names
+    result = s.try_selected()
+    while not result.acceptable:
+        s.reject()
+        result = s.try_selected()
+    before = resources.task.stage(s.view().rope_nodes_k3).stage
+    after = int(result.outcome.stage)
+    assert result.stage_before == before
+    text = result.summary
+    assert names[after] in text
+    if result.outcome.gauss_code:
+        assert result.outcome.gauss_code in text
+    if not result.outcome.knot:
+        want = "advanced" if after > before else ("nothing gained" if after == before else "went")
+        assert want in text
+    assert text in s.view().message
+
+
+def test_a_dead_end_reads_as_a_dead_end_not_a_reject(store, resources):
+    from knotlab.app.web.panels import judged_suffix
+
+    s = _session(store, resources)
+    while not s.try_selected().acceptable:
+        s.reject()
+    rank = s.view().last_try.rank
+    s.dead_end()
+    view = s.view()
+    assert rank in view.dead_ends and rank in view.rejected
+    assert judged_suffix(rank, view) == " · dead end"
+    other = next(iter(view.rejected - view.dead_ends), None)
+    if other is not None:
+        assert judged_suffix(other, view) == " · rejected"
