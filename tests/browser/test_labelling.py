@@ -90,6 +90,9 @@ def test_try_then_accept_stores_the_label(tabs, app):
         tab.press("Enter")
         wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 30, "second try")
         chosen = tab.session.view().last_try.demo_key
+    summary = tab.session.view().last_try.summary
+    wait_until(lambda: summary in tab.page.inner_text("body"), 10, "the try's outcome shown")
+    tab.screenshot("judging")
     tab.button("Accept (Y)").click()
     labels = wait_until(
         lambda: (lambda ls: ls if len(ls) == before + 1 else None)(app.store.labels(labeller="cy")),
