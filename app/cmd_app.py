@@ -40,6 +40,41 @@ def _port(text: str) -> int:
     return port
 
 
+def check_host(host: str, port: int) -> None:
+    """Refuse, in one line (exit 2), an address this machine cannot serve on, before anything
+    starts: viser would try 1000 ports on it, then wait forever for one to have bound."""
+    import errno
+    import socket
+
+    from knotlab.core.errors import InvalidInputError
+
+    try:
+        infos = socket.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+    except (OSError, UnicodeError) as exc:  # socket.gaierror: a name that does not resolve
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise InvalidInputError(f"--host {host}: no such host name or address ({reason})") from None
+    problem: OSError | None = None
+    for family, kind, proto, _, address in infos:
+        try:
+            with socket.socket(family, kind, proto) as sock:
+                sock.settimeout(2.0)
+                sock.bind(address)
+            return
+        except OSError as exc:
+            if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+                return  # the address is ours; viser serves on the next free port
+            problem = exc
+    if problem is not None and problem.errno == errno.EADDRNOTAVAIL:
+        raise InvalidInputError(
+            f"--host {host}: this machine has no such address (give one of its own addresses, "
+            "127.0.0.1 for this machine only, or 0.0.0.0 for every network)"
+        )
+    reason = problem.strerror if problem is not None else "no address to bind"
+    raise InvalidInputError(f"--host {host}: cannot serve on it ({reason})")
+
+
 def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
     """Open the store, load library, starts and models, and start serving; returns the app."""
     from knotlab.app.web.resources import load_resources
@@ -55,7 +90,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         overlap=getattr(args, "overlap", 0.0),
         task=task,
     )
-    store = open_store(db_url(args), create=True, auto_upgrade=True)
+    store = open_store(db_url(args), create=True, auto_upgrade=True, persistent=True)
     try:
         store.check_task(task)  # a store holding another task's labels is refused
     except BaseException:
@@ -82,13 +117,22 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
 
 def _run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    check_host(args.host, args.port)  # before the store, the resources and the server
     if args.host not in LOOPBACK:
         print(
             f"warning: serving on {args.host}: anyone who can reach this machine on that "
             "network can label with your database",
             file=sys.stderr,
         )
-    app = build_app(args, lite_rendering=args.lite_rendering)  # bad input: one line at the edge
+    # Ctrl-C interrupts the start-up too (exit 130), even in a process that inherited SIGINT
+    # as ignored (a shell's `&`).
+    main_thread = threading.current_thread() is threading.main_thread()
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler) if main_thread else None
+    try:
+        app = build_app(args, lite_rendering=args.lite_rendering)  # bad input: one line
+    finally:
+        if inherited is not None:
+            signal.signal(signal.SIGINT, inherited)
     if app.server.get_port() != args.port and args.port != 0:
         print(f"note: port {args.port} was busy; serving on {app.server.get_port()}")
     stop = threading.Event()

@@ -12,7 +12,7 @@ def _init(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import upgrade_database
 
     url = db_url(args)
-    before, after = upgrade_database(url, create=True)
+    before, after = upgrade_database(url, create=True, persistent=True)
     if before.state == "empty":
         print(f"created the knotlab schema at revision {after.revision} in {after.url}")
     elif before.revision == after.revision:
@@ -26,7 +26,7 @@ def _upgrade(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import upgrade_database
 
     url = db_url(args)
-    before, after = upgrade_database(url, create=False)
+    before, after = upgrade_database(url, create=False, persistent=True)
     if before.revision == after.revision:
         print(f"{after.url} is already at the newest schema revision {after.revision}")
     else:

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     selected = list(tasks) if args.tasks is None else list(tasks)[: args.tasks]
     t0 = time.perf_counter()
     solved = sims = dead = 0
-    with open_store(args.db) as store:
+    with open_store(args.db, persistent=True) as store:
         store.check_task(task_of(args))  # a store holding another task's labels is refused
         # a task is its rope: a stored id whose rope differs is refused, not skipped as labelled
         stored = store.training_executions(include_unfinished=True)

@@ -70,7 +70,7 @@ def _import(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import open_store
 
     items = read_labels(args.path, args.format)  # a bad file is refused before the database opens
-    with open_store(db_url(args), create=True, auto_upgrade=False) as store:
+    with open_store(db_url(args), create=True, auto_upgrade=False, persistent=True) as store:
         n = import_labels(store, args.path, if_exists=args.if_exists, items=items)
     print(f"imported {n} executions into {store.url}", file=sys.stderr)
     return 0

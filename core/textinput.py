@@ -80,14 +80,16 @@ def quote(value: object, limit: int = QUOTE_CHARS) -> str:
 
 
 def read_lines(
-    path: str | Path, *, max_bytes: int = MAX_LINE_BYTES, raise_errors: bool = True
+    path: str | Path, *, max_bytes: int | None = None, raise_errors: bool = True
 ) -> Iterator[Line]:
     """The lines of a UTF-8 text file, split on ``b"\\n"`` only (OS errors pass through).
 
-    A line over ``max_bytes`` or one that is not UTF-8 raises :class:`LineError` naming it; with
-    ``raise_errors=False`` it is yielded with its ``problem`` instead (an over-long line's text
-    is empty: it is skipped, never held whole), and reading goes on.
+    A line over ``max_bytes`` (default :data:`MAX_LINE_BYTES`) or one that is not UTF-8 raises
+    :class:`LineError` naming it; with ``raise_errors=False`` it is yielded with its ``problem``
+    instead (an over-long line's text is empty: it is skipped, never held whole), and reading
+    goes on.
     """
+    max_bytes = MAX_LINE_BYTES if max_bytes is None else max_bytes
     with open(path, "rb") as fh:
         number = 0
         while True:

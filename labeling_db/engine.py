@@ -11,13 +11,19 @@ from urllib.parse import quote
 
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, text
 from sqlalchemy.engine import URL, make_url
-from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError
+from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError, OperationalError
 from sqlalchemy.pool import NullPool, StaticPool
 
 from knotlab.labeling_db.errors import (
     CorruptDatabaseError,
+    DatabaseBusyError,
+    DatabaseFailedError,
     DatabaseNotFoundError,
+    DatabaseReadOnlyError,
+    DatabaseUnavailableError,
     DatabaseUrlError,
+    DatabaseWriteError,
+    InMemoryDatabaseError,
     LabelingDbError,
     NotADatabaseError,
     SchemaOutdatedError,
@@ -174,6 +180,100 @@ def _is_corruption(exc: BaseException | None) -> bool:
     return any(s in msg for s in ("malformed", "not a database", "encrypted", "corrupt"))
 
 
+# ----------------------------------------------------------------------------- database errors
+
+# SQLite result codes (sqlite3 errors carry them as ``sqlite_errorname``) and PostgreSQL SQLSTATEs.
+_PG_CONNECT_STATES = {"28000", "28P01", "3D000", "57P01", "57P02", "57P03"}  # + class 08
+_CONNECT_WORDS = ("connection", "could not connect", "could not translate host", "timeout expired")
+
+
+def _one_line(exc: BaseException | None, limit: int = 200) -> str:
+    """A driver message in one line of at most ``limit`` characters."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def database_error(exc: DBAPIError, url_text: str) -> LabelingDbError | None:
+    """The one-line error a database condition is reported as, naming the database (its
+    password masked) and what to do; None for an error that is not a condition of the database
+    (a constraint, a bug: the caller re-raises it)."""
+    orig = exc.orig
+    msg = str(orig).lower()
+    code = str(getattr(orig, "sqlite_errorname", "") or "")
+    state = str(getattr(orig, "sqlstate", "") or "")
+    detail = _one_line(orig)
+    if _is_corruption(orig) or code in ("SQLITE_CORRUPT", "SQLITE_NOTADB"):
+        return CorruptDatabaseError(f"{url_text}: database is corrupt ({detail})")
+    if code.startswith("SQLITE_READONLY") or "readonly database" in msg or state == "25006":
+        return DatabaseReadOnlyError(
+            f"{url_text}: the database is read-only ({detail}); nothing was written. Make the "
+            "database file and its folder writable by this user, or give another --db"
+        )
+    if (
+        code.startswith(("SQLITE_FULL", "SQLITE_IOERR"))
+        or "disk is full" in msg
+        or "no space left" in msg
+        or state.startswith("53")
+    ):
+        return DatabaseWriteError(
+            f"{url_text}: could not write the database ({detail}: a full disk, a file size "
+            "limit or a failing disk); nothing was written. Free space and rerun"
+        )
+    if code.startswith("SQLITE_CANTOPEN") or "unable to open database file" in msg:
+        return DatabaseUnavailableError(
+            f"{url_text}: cannot open the database file ({detail}); check that its folder exists "
+            "and that this user may read and write the file and its folder"
+        )
+    if code.startswith(("SQLITE_BUSY", "SQLITE_LOCKED")) or "database is locked" in msg:
+        return DatabaseBusyError(
+            f"{url_text}: the database is locked by another process ({detail}); nothing was "
+            "written. Rerun when that process is done"
+        )
+    if (
+        state.startswith("08")
+        or state in _PG_CONNECT_STATES
+        or exc.connection_invalidated
+        or (
+            isinstance(exc, OperationalError) and not code and any(w in msg for w in _CONNECT_WORDS)
+        )
+    ):
+        return DatabaseUnavailableError(
+            f"{url_text}: cannot connect to the database server ({detail}); check the host, "
+            "port, user, password and database name in the URL, and that the server is running"
+        )
+    if isinstance(exc, OperationalError):
+        return DatabaseFailedError(f"{url_text}: the database failed ({detail})")
+    return None
+
+
+def _open_error(exc: DBAPIError, url_text: str) -> LabelingDbError:
+    """The one-line error of a database that could not be opened (or checked, or migrated)."""
+    return database_error(exc, url_text) or DatabaseUnavailableError(
+        f"{url_text}: cannot open the database ({_one_line(exc.orig)})"
+    )
+
+
+def is_in_memory(url: URL) -> bool:
+    """Whether ``url`` is an SQLite database that lives in memory (``sqlite://``, ``:memory:``,
+    ``file::memory:``, ``mode=memory``): it keeps nothing once the process ends."""
+    if url.get_backend_name() != "sqlite":
+        return False
+    db = url.database or ""
+    if db in ("", ":memory:"):
+        return True
+    return db.startswith("file:") and (
+        db[5:].split("?")[0] in ("", ":memory:") or url.query.get("mode") == "memory"
+    )
+
+
+def _refuse_in_memory(url: URL, url_text: str) -> None:
+    if is_in_memory(url):
+        raise InMemoryDatabaseError(
+            f"{url_text}: an in-memory database keeps nothing after this command; give a "
+            f"database file (e.g. --db {DEFAULT_URL}) or a database server URL"
+        )
+
+
 def _readonly_sqlite_status(path: Path, url_text: str) -> SchemaStatus | None:
     """Integrity-check and read the schema revision through a read-only connection."""
 
@@ -267,10 +367,16 @@ def _parse_url(url: str | URL) -> URL:
         ) from exc
 
 
-def _prepare(url: str | URL, *, create: bool) -> tuple[URL, str, SchemaStatus | None]:
-    """Check a SQLite file before anything may write to it; returns a pre-read status if any."""
+def _prepare(
+    url: str | URL, *, create: bool, persistent: bool = False
+) -> tuple[URL, str, SchemaStatus | None]:
+    """Check a SQLite file before anything may write to it; returns a pre-read status if any.
+
+    ``persistent``: refuse an in-memory database (what is stored must outlive the command)."""
     parsed = _parse_url(url)
     text = _url_text(parsed)
+    if persistent:
+        _refuse_in_memory(parsed, text)
     path = _sqlite_path(parsed) if parsed.get_backend_name() == "sqlite" else None
     if path is None:
         return parsed, text, None
@@ -314,16 +420,23 @@ def schema_status(url: str | URL = DEFAULT_URL) -> SchemaStatus:
         with engine.connect() as conn:
             return _status_of(conn, text)
     except DBAPIError as exc:
-        raise LabelingDbError(f"{text}: cannot open the database ({exc.orig})") from exc
+        raise _open_error(exc, text) from exc
     finally:
         engine.dispose()
 
 
 def upgrade_database(
-    url: str | URL = DEFAULT_URL, *, revision: str = "head", create: bool = True
+    url: str | URL = DEFAULT_URL,
+    *,
+    revision: str = "head",
+    create: bool = True,
+    persistent: bool = False,
 ) -> tuple[SchemaStatus, SchemaStatus]:
-    """Create or migrate the schema (``alembic upgrade``); returns the status before and after."""
-    parsed, text, before = _prepare(url, create=create)
+    """Create or migrate the schema (``alembic upgrade``); returns the status before and after.
+
+    ``persistent``: refuse an in-memory database URL (a command's schema would vanish with it).
+    """
+    parsed, text, before = _prepare(url, create=create, persistent=persistent)
     if before is not None:
         _raise_for(before, create=create, auto_upgrade=True)
     engine = _make_engine(parsed, busy_timeout_s=30.0, echo=False)
@@ -334,6 +447,11 @@ def upgrade_database(
         after = _upgrade(engine, text, revision, create=create)
         return first, after
     except DBAPIError as exc:
-        raise LabelingDbError(f"{text}: migration failed, nothing changed ({exc.orig})") from exc
+        error = database_error(exc, text)
+        if error is not None:
+            raise error from exc
+        raise LabelingDbError(
+            f"{text}: migration failed, nothing changed ({_one_line(exc.orig)})"
+        ) from exc
     finally:
         engine.dispose()

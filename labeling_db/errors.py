@@ -45,6 +45,30 @@ class DatabaseBusyError(LabelingDbError):
     exit_code: ClassVar[int] = 1  # the input was fine; another writer held the lock
 
 
+class DatabaseReadOnlyError(LabelingDbError):
+    """The database refuses writes: a read-only file, folder, mount or connection."""
+
+
+class DatabaseUnavailableError(LabelingDbError):
+    """The database cannot be reached: a file SQLite cannot open, a server that refuses."""
+
+
+class InMemoryDatabaseError(DatabaseUrlError):
+    """An in-memory database URL (``sqlite://``) for a command that stores: it keeps nothing."""
+
+
+class DatabaseWriteError(LabelingDbError):
+    """Writing failed below the database: a full disk, a file size limit, an I/O error."""
+
+    exit_code: ClassVar[int] = 1  # the input was fine; the machine could not keep it
+
+
+class DatabaseFailedError(LabelingDbError):
+    """Another operational failure of the database server or file, reported in one line."""
+
+    exit_code: ClassVar[int] = 1
+
+
 class RecordNotFoundError(LabelingDbError, LookupError):
     """A labeller, state, episode or model looked up by key does not exist."""
 

@@ -485,7 +485,7 @@ def _read_csv(lines: Iterable[Line], path: str) -> Iterator[tuple[int, StoredExe
             current, steps, dead = row, [], []
             continue
         if kind not in ("step", "dead_end"):
-            raise row.fail("row_type", f"must be execution, step or dead_end, got {kind!r}")
+            raise row.fail("row_type", f"must be execution, step or dead_end, got {quote(kind)}")
         if current is None or row.data["execution_id"] != current.data["execution_id"]:
             raise row.fail("execution_id", "must follow the execution row it belongs to")
         if kind == "step":

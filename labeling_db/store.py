@@ -21,8 +21,8 @@ from sqlalchemy.orm import Session
 from knotlab.labeling_db.decisions import DecisionsStore
 from knotlab.labeling_db.engine import (
     DEFAULT_URL,
-    _is_corruption,
     _make_engine,
+    _open_error,
     _prepare,
     _raise_for,
     _status_of,
@@ -30,10 +30,6 @@ from knotlab.labeling_db.engine import (
     schema_head,
     schema_status,
     upgrade_database,
-)
-from knotlab.labeling_db.errors import (
-    CorruptDatabaseError,
-    LabelingDbError,
 )
 from knotlab.labeling_db.executions import ExecutionsStore
 from knotlab.labeling_db.labelling import LabellingStore
@@ -120,9 +116,15 @@ def open_store(
     busy_timeout_s: float = 10.0,
     max_attempts: int = 8,
     echo: bool = False,
+    persistent: bool = False,
 ) -> Store:
-    """Open (and, if allowed, create or migrate) the labelling database at `url`."""
-    parsed, text, status = _prepare(url, create=create)
+    """Open (and, if allowed, create or migrate) the labelling database at `url`.
+
+    ``persistent``: refuse an in-memory database (``sqlite://``), for callers whose writes must
+    outlive the process. A database that cannot be opened, read or written is reported in one
+    line naming it (labeling_db.engine.database_error), never as a driver's exception.
+    """
+    parsed, text, status = _prepare(url, create=create, persistent=persistent)
     if status is not None:
         _raise_for(status, create=create, auto_upgrade=auto_upgrade)
     engine = _make_engine(parsed, busy_timeout_s=busy_timeout_s, echo=echo)
@@ -133,9 +135,7 @@ def open_store(
             _upgrade(engine, text, "head", create=create)
     except DBAPIError as exc:
         engine.dispose()
-        if _is_corruption(exc.orig):
-            raise CorruptDatabaseError(f"{text}: database is corrupt ({exc.orig})") from exc
-        raise LabelingDbError(f"{text}: cannot open the database ({exc.orig})") from exc
+        raise _open_error(exc, text) from exc
     except BaseException:
         engine.dispose()
         raise

@@ -13,7 +13,7 @@ from sqlalchemy import Engine
 from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from knotlab.labeling_db.engine import _is_corruption, _status_of
+from knotlab.labeling_db.engine import _is_corruption, _status_of, database_error
 from knotlab.labeling_db.errors import (
     ConflictError,
     CorruptDatabaseError,
@@ -81,7 +81,11 @@ class StoreBase:
                         f"{self.url}: database is corrupt ({exc.orig})"
                     ) from exc
                 if not self._retryable(exc):
-                    raise
+                    # read-only, full, unreachable ...: one line naming the database
+                    error = database_error(exc, self.url)
+                    if error is None:
+                        raise
+                    raise error from exc
                 if attempt == self._max_attempts:
                     raise DatabaseBusyError(
                         f"{self.url}: database stayed locked through {attempt} attempts "

@@ -170,7 +170,7 @@ class QModel:
         try:  # bounded depth and integers, one line whatever the bytes (core.textinput)
             meta = parse_json(arrays.pop("meta").tobytes(), path)
         except LineError as exc:
-            raise CorruptFileError(
-                f"{path}: model metadata is not valid ({exc.problem})"
-            ) from None
+            raise CorruptFileError(f"{path}: model metadata is not valid ({exc.problem})") from None
+        if not isinstance(meta, dict):
+            raise CorruptFileError(f"{path}: model metadata is not a JSON object")
         return cls.from_parts(arrays, meta, str(path))
