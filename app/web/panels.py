@@ -225,7 +225,8 @@ class LabelPanels:
                 continue
             rejected = r in view.rejected
             cost = f"cost {c.ranked.nn_cost:.3f}"
-            label = candidate_label(c) + f" · {cost}" + judged_suffix(r, view)
+            # The verdict before the cost: a narrow panel cuts the end of a long label off.
+            label = candidate_label(c) + judged_suffix(r, view) + f" · {cost}"
             self._set(button, "label", label)
             self._set(button, "color", "gray" if rejected else rank_colour(r))
             self._set(button, "icon", viser.Icon.ARROW_RIGHT if r == view.selected else None)

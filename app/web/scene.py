@@ -191,7 +191,8 @@ class SceneDrawer:
             anchor = path[len(path) // 2]
             self.scene.add_label(
                 f"{base}/label",
-                candidate_label(c) + (" (rejected)" if rejected else ""),
+                candidate_label(c)
+                + (" (dead end)" if rank in view.dead_ends else " (rejected)" if rejected else ""),
                 position=(float(anchor[0]), float(anchor[1]), float(anchor[2]) + 0.035 * rank),
                 font_screen_scale=1.2 if selected else 0.9,
             )

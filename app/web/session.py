@@ -109,7 +109,7 @@ class TryResult:
         def name(stage: int) -> str:
             return names[stage] if 0 <= stage < len(names) else f"stage {stage}"
 
-        code = f" ({self.outcome.gauss_code})" if self.outcome.gauss_code else ""
+        code = f" ({self.outcome.gauss_code or 'no crossings'})"
         if self.outcome.knot:
             return f"{name(after)}{code}"
         if after > self.stage_before:
@@ -117,6 +117,12 @@ class TryResult:
         if after == self.stage_before:
             return f"nothing gained: still {name(after)}{code}"
         return f"went back to {name(after)}{code} from {name(self.stage_before)}"
+
+    @property
+    def stage_reached(self) -> str:
+        """The name of the task's stage the rope is in after the try."""
+        stage, names = int(self.outcome.stage), self.stage_names
+        return names[stage] if 0 <= stage < len(names) else f"stage {stage}"
 
     @property
     def acceptable(self) -> bool:
@@ -408,7 +414,8 @@ class LabelSession:
                 next_nodes_k3=result.outcome.nodes_after_k3,
                 finish=ends,  # the last label and the episode's end in one transaction
             )
-            self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({result.word})")
+            reached = result.stage_reached  # not "progressed": that is said of every execution
+            self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({reached})")
             self.step_index += 1
             if ends:
                 done = "knot tied" if result.word == StepOutcome.KNOT else "step limit reached"
@@ -482,10 +489,9 @@ class LabelSession:
                 raise SessionError("wait for the try to finish")
             if self.episode is None or self.store.episode(self.episode.episode_id).n_labels == 0:
                 # A finished episode stays finished: undoing into it would silently abandon
-                # the rope on screen.
-                raise SessionError(
-                    "nothing to undo on this rope: no step of it has been accepted yet"
-                )
+                # the rope on screen. Said in the status area, where the labeller looks.
+                self.message = "nothing to undo on this rope: no step of it has been accepted yet"
+                return self.view()
             undone = self.store.undo_last_label(self.labeller)
             if undone is None:
                 raise SessionError("nothing to undo")

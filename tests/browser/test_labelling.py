@@ -121,6 +121,19 @@ def test_reject_greys_out_and_dead_end_is_stored(tabs, app):
     tab.press("F")
     wait_until(lambda: app.store.progress("dee").dead_ends == dead_before + 1, 10, "dead end")
     assert tab.session.view().rejected == frozenset({1, 2})
+    # A dead end reads as one, in the list and on the 3D label (which are not the DOM's text).
+    buttons = tab.server_tab.panels.cand_buttons
+    wait_until(lambda: "· dead end ·" in buttons[1].label, 10, "the list saying dead end")
+    assert "· rejected ·" in buttons[0].label and "dead end" not in buttons[0].label
+
+    def label_3d(rank: int) -> str:
+        return tab.page.evaluate(
+            "(n) => JSON.stringify(window.__viserSceneTree.getState()[n] || null)",
+            f"/label/candidates/{rank}/label",
+        )
+
+    wait_until(lambda: "(dead end)" in label_3d(2), 10, "the 3D label saying dead end")
+    assert "(rejected)" in label_3d(1)
 
 
 def test_undo_removes_the_last_label_and_goes_back(tabs, app):
