@@ -136,7 +136,7 @@ def apply_tries(
             a = index.get(t.demo)
             if a is None:
                 raise InvalidInputError(
-                    f"tries of {execution_id} step {s.step} name demo {t.demo!r}, "
+                    f"tries of {execution_id} step {s.step} name demo {quote(t.demo)}, "
                     "which is not in this library"
                 )
             if a == s.expert_action:

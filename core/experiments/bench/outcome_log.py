@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TextIO
 
 from knotlab.core.errors import KnotlabError
-from knotlab.core.textinput import LineError, parse_json, read_lines
+from knotlab.core.textinput import LineError, parse_json, quote, read_lines
 
 OUTCOMES_FILE = "outcomes.jsonl"
 # What every line bench writes holds (core.experiments.episode.EpisodeRecord.to_dict), by type.
@@ -40,7 +40,7 @@ def _outcome_problem(rec: object) -> str | None:
         if name not in rec:
             return f"no {name!r} field"
         if not isinstance(rec[name], kind):
-            return f"{name!r} is {rec[name]!r}"
+            return f"{name!r} is {quote(rec[name])}"
     return None
 
 
