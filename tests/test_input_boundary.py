@@ -364,7 +364,8 @@ def _one_line(argv: list[str], folder: Path, capsys: pytest.CaptureFixture[str],
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     lines = err.splitlines()
-    assert len(lines) == 1 and ": error: " in lines[0] and "error: unexpected" not in lines[0], err[:500]
+    assert len(lines) == 1 and ": error: " in lines[0], err[:500]
+    assert "error: unexpected" not in lines[0], err[:500]
     assert len(lines[0]) < MAX_MESSAGE, lines[0][:300]
     for word in words:
         assert word in lines[0], lines[0]
