@@ -409,3 +409,32 @@ def test_playback_defaults_load_and_play_at_the_end_starts_again(tabs):
     assert panel.frame == len(panel.replay) - 1
     page.get_by_role("button", name="Play / pause").click()
     wait_until(lambda: 0 < panel.frame < len(panel.replay) - 1, 20, "playing again from the start")
+
+
+def _label_episode(tab, act) -> None:
+    """Try and accept (or reject a failed try) until the episode of the first rope ends."""
+    first = tab.session.view().task_id
+    for _ in range(30):
+        if tab.session.view().task_id != first:
+            return
+        act("try")
+        wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 60, "the try")
+        act("accept" if tab.session.view().last_try.acceptable else "reject")
+        wait_until(lambda: tab.session.view().phase is not Phase.JUDGING, 30, "the judgement")
+    raise AssertionError("the episode did not end")
+
+
+def test_a_keyboard_only_labeller_labels_a_whole_episode(tabs, app):
+    tab = tabs("kim", submit="enter")  # the name by Enter; no mouse from here on
+    keys = {"try": "Enter", "accept": "y", "reject": "n"}
+    _label_episode(tab, lambda what: tab.page.keyboard.press(keys[what]))
+    done = [e for e in app.store.stored_executions() if e.execution.labeller == "kim"]
+    assert any(e.status == "completed" for e in done)
+
+
+def test_a_mouse_only_labeller_labels_a_whole_episode(tabs, app):
+    tab = tabs("max")  # the name by clicking the button
+    names = {"try": "Try (Enter)", "accept": "Accept (Y)", "reject": "Reject (N)"}
+    _label_episode(tab, lambda what: tab.button(names[what]).click())
+    done = [e for e in app.store.stored_executions() if e.execution.labeller == "max"]
+    assert any(e.status == "completed" for e in done)
