@@ -405,6 +405,8 @@ def test_playback_defaults_load_and_play_at_the_end_starts_again(tabs):
     page.get_by_role("button", name="Load and replay").click()
     wait_until(lambda: panel.replay is not None, 120, "the default episode's replay")
     assert "no episode" not in panel.status.content
+    # the replay is published before play starts: wait for it to move, then to stop
+    wait_until(lambda: panel.frame > 0, 60, "the replay to start playing")
     wait_until(lambda: not panel._playing.is_set(), 120, "the replay to play to its end")
     assert panel.frame == len(panel.replay) - 1
     page.get_by_role("button", name="Play / pause").click()
