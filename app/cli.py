@@ -36,6 +36,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "knotlab.app.cmd_app",
     "knotlab.app.cmd_suggest",
     "knotlab.app.cmd_playback",
+    "knotlab.app.cmd_serve",
 )
 DEBUG_ENV = "KNOTLAB_DEBUG"
 # OS errors on a path the user named: the input is at fault, not the run.

@@ -1,4 +1,8 @@
-"""`knotlab demos`: generate the demonstration library with the scripted expert, and inspect one."""
+"""`knotlab demos`: generate, inspect, import and export demonstration libraries.
+
+`import` and `export` move libraries to and from the original system's HDF5 layout (one group
+per segment, `<demo>-seg<NN>`), so a lab's own recorded demos can be used and ours read by theirs.
+"""
 
 from __future__ import annotations
 
@@ -49,6 +53,40 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     info.add_argument("path", help="library file (.npz)")
     add_flag(info, "--json")
     info.set_defaults(func=run_info)
+    imp = sub.add_parser(
+        "import",
+        help="read a demo library in the original HDF5 layout and write a knotlab library",
+        description="Read an HDF5 file with one group per segment (<demo>-seg<NN>: cloud_xyz, "
+        "{l,r}_gripper_tool_frame/hmat, {l,r}_gripper_joint, optional rope_nodes and stamps, "
+        "description), validate every group and write a knotlab library (.npz). A file that "
+        "knotlab exported re-imports to the same content hash.",
+    )
+    imp.add_argument("path", help="the HDF5 demo file (.h5)")
+    add_flag(imp, "--out", required=True, detail="the library (.npz)")
+    imp.add_argument(
+        "--observation",
+        choices=[m.value for m in ObservationModel],
+        default=None,
+        help="how the recorded clouds were perceived, so the agent observes a world the same "
+        "way (default: cloud, a camera's surface cloud; a knotlab export keeps its own)",
+    )
+    add_task_argument(imp)
+    add_flag(imp, "--force", detail="here: the library --out names")
+    add_flag(imp, "--json")
+    imp.set_defaults(func=run_import)
+    exp = sub.add_parser(
+        "export",
+        help="write a knotlab library in another format (the original HDF5 layout)",
+        description="Write every segment as a <demo>-seg<NN> group of the original HDF5 layout, "
+        "with knotlab's additions (key, indices, metadata, rope after) so it re-imports "
+        "to the same content hash.",
+    )
+    exp.add_argument("path", help="the library (.npz)")
+    exp.add_argument("--format", choices=["h5"], default="h5", help="the file format (h5)")
+    add_flag(exp, "--out", required=True, detail="the HDF5 file (.h5)")
+    add_flag(exp, "--force", detail="here: the file --out names")
+    add_flag(exp, "--json")
+    exp.set_defaults(func=run_export)
 
 
 def run_generate(args: argparse.Namespace) -> int:
@@ -101,4 +139,61 @@ def run_info(args: argparse.Namespace) -> int:
             f"{meta['candidates_knotted']}/{meta['candidates_tried']} "
             f"({meta['expert_success_rate']:.0%})"
         )
+    return 0
+
+
+H5_SUFFIXES = (".h5", ".hdf5")
+
+
+def run_import(args: argparse.Namespace) -> int:
+    """Import an HDF5 demo file and save it as a knotlab library; print a summary."""
+    from knotlab.core.interop.h5_demos import import_library_h5
+
+    check_output(args.out, force=args.force, kind="demo library")
+    report = import_library_h5(args.path, task=args.task, observation=args.observation)
+    lib = report.library
+    out = lib.save(args.out)
+    summary = {
+        "path": str(out),
+        "source": str(args.path),
+        "segments": len(lib),
+        "start_states": len(set(lib.start_indices().tolist())),
+        "hash": lib.content_hash(),
+        "task": lib.task,
+        "native": report.native,
+        "rope_nodes": report.has_rope_nodes,
+        "timed_from_path": report.timed_from_path,
+    }
+    if args.json:
+        print(json.dumps(summary, sort_keys=True))
+        return 0
+    print(
+        f"wrote {out}: {len(lib)} segments from {summary['start_states']} demos, "
+        f"hash {lib.content_hash()}, task {lib.task}"
+    )
+    if not report.has_rope_nodes:
+        print(
+            "  no rope_nodes: nearest neighbour and greedy work (registration needs only "
+            "clouds); task sets from this library, lookahead and the oracle need rope states"
+        )
+    if report.timed_from_path:
+        print(
+            f"  {report.timed_from_path} segments had no stamps: their waypoint times follow "
+            "the path at the nominal gripper speed"
+        )
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    """Export a knotlab library to the original HDF5 layout."""
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.interop.h5_demos import export_library_h5
+
+    check_output(args.out, force=args.force, kind="HDF5 demo file", suffixes=H5_SUFFIXES)
+    lib = DemoLibrary.load(args.path)
+    out = export_library_h5(lib, args.out)
+    if args.json:
+        print(json.dumps({"path": str(out), "segments": len(lib), "hash": lib.content_hash()}))
+        return 0
+    print(f"wrote {out}: {len(lib)} segment groups, library hash {lib.content_hash()}")
     return 0

@@ -41,7 +41,7 @@ from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 from knotlab.core.tasks import Task, get_task
 from knotlab.core.world.frames import FrameRecorder
-from knotlab.core.world.protocol import World
+from knotlab.core.world.protocol import NO_WORLD, World
 from knotlab.core.world.trajectory import GripperTrajectory
 
 if TYPE_CHECKING:  # the episode record: only for the checker
@@ -267,7 +267,7 @@ class Agent:
 
     def choose(
         self,
-        world: World,
+        world: World | None,
         *,
         cloud_n3: np.ndarray | None = None,
         step_index: int = 0,
@@ -275,7 +275,17 @@ class Agent:
     ) -> Decision:
         """The policy's choice in the world's current state, with its scores and reasons
         (``info``: the lookahead's search tree and backed-up values, the oracle's stages).
-        The world is left as it was found."""
+        The world is left as it was found. Without a world (a robot's cloud alone) only the
+        policies that do not simulate can choose, from ``cloud_n3``."""
+        if world is None:
+            if self.config.simulates:
+                raise InvalidInputError(
+                    f"policy {self.name!r} simulates candidate executions: it needs a world "
+                    "(a rope-state estimate), not a cloud alone"
+                )
+            if cloud_n3 is None:
+                raise InvalidInputError("a decision without a world needs the cloud (cloud_n3)")
+            world = NO_WORLD
         cloud = self.observe(world) if cloud_n3 is None else cloud_n3
         return self.policy.choose(self.context(world, cloud, step_index=step_index, memo=memo))
 

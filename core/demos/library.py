@@ -51,8 +51,10 @@ class DemoSegment:
             raise InvalidInputError(f"segment {self.key}: trajectory must be a GripperTrajectory")
         if self.step_index < 0 or self.start_index < 0:
             raise InvalidInputError(f"segment {self.key}: negative step or start index")
-        pre = points_n3(f"segment {self.key} pre_nodes_k3", self.pre_nodes_k3)
-        post = points_n3(f"segment {self.key} post_nodes_k3", self.post_nodes_k3)
+        # A recorded demo may come without a rope-state estimate: no nodes (K = 0) before and
+        # after. Registration needs only the cloud; what needs the nodes says so.
+        pre = points_n3(f"segment {self.key} pre_nodes_k3", self.pre_nodes_k3, min_points=0)
+        post = points_n3(f"segment {self.key} post_nodes_k3", self.post_nodes_k3, min_points=0)
         if pre.shape != post.shape:
             raise InvalidInputError(
                 f"segment {self.key}: pre and post node shapes differ ({pre.shape} vs {post.shape})"
@@ -103,6 +105,19 @@ class DemoLibrary:
         return str(self.metadata.get("task", "overhand"))
 
     @property
+    def has_rope_nodes(self) -> bool:
+        """Whether the segments carry rope states (a recorded library may have clouds only)."""
+        return self._segments[0].pre_nodes_k3.shape[0] > 0
+
+    def require_rope_nodes(self, purpose: str) -> None:
+        """Raise a clear error when ``purpose`` needs rope states this library lacks."""
+        if not self.has_rope_nodes:
+            raise InvalidInputError(
+                f"{purpose} needs the demos' rope states (rope_nodes), and this library has "
+                "clouds only; nearest neighbour and greedy need only the clouds"
+            )
+
+    @property
     def segments(self) -> tuple[DemoSegment, ...]:
         """All segments, in library order (the action index of the learner)."""
         return self._segments
@@ -133,6 +148,7 @@ class DemoLibrary:
 
     def start_states(self) -> dict[int, np.ndarray]:
         """Pre-step rope nodes of each demonstration's first segment, by start index."""
+        self.require_rope_nodes("start states from a library (tasks generate)")
         out: dict[int, np.ndarray] = {}
         for s in sorted(self._segments, key=lambda s: (s.start_index, s.step_index)):
             out.setdefault(s.start_index, s.pre_nodes_k3)

@@ -8,7 +8,7 @@ passed in satisfies it). Code that makes its own world (a bench worker, a replay
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Protocol, cast
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
     import numpy as np
@@ -60,3 +60,19 @@ class World(Protocol):
     ) -> np.ndarray:
         """Point cloud (N, 3) on the rope's upper surface."""
         ...
+
+
+class _NoWorld:
+    """Stands for the world in a decision made from a cloud alone; any use is a clear error."""
+
+    def __getattr__(self, name: str) -> object:
+        from knotlab.core.errors import InvalidInputError
+
+        raise InvalidInputError(
+            f"this decision was made from a cloud alone: there is no world to {name} "
+            "(a policy that simulates needs a rope-state estimate)"
+        )
+
+
+# A policy that does not simulate never touches its context's world; this one says so if it did.
+NO_WORLD = cast(World, _NoWorld())

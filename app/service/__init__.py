@@ -1,0 +1,1 @@
+"""`knotlab serve`: the HTTP decision service (API, request models, worker pool)."""
