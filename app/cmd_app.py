@@ -13,6 +13,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 from knotlab.app import defaults
 from knotlab.app.options import (
@@ -28,16 +29,6 @@ from knotlab.app.options import (
 )
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
-
-
-def _port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        port = -1
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a port number 0-65535, got {text!r}")
-    return port
 
 
 def check_host(host: str, port: int) -> None:
@@ -75,6 +66,29 @@ def check_host(host: str, port: int) -> None:
     raise InvalidInputError(f"--host {host}: cannot serve on it ({reason})")
 
 
+def check_model_arg(model: str | None, url: str) -> None:
+    """Refuse, in one line (exit 2), a --model that is neither a file nor a model version stored
+    in the database, before the database is created or a start registered in it."""
+    if model is None or Path(model).exists():
+        return
+    from knotlab.core.errors import InvalidInputError
+    from knotlab.labeling_db.errors import DatabaseNotFoundError, LabelingDbError
+    from knotlab.labeling_db.store import open_store
+
+    try:
+        with open_store(url, create=False, auto_upgrade=False) as store:
+            versions = [m.version for m in store.list_models()]
+    except DatabaseNotFoundError:
+        versions = []  # no database yet: nothing stored
+    except LabelingDbError:
+        return  # an old schema, a server down: opening the store says so, and load_models checks
+    if model not in versions:
+        raise InvalidInputError(
+            f"--model {model!r} is neither a model file nor a stored model version "
+            f"(stored: {', '.join(versions) or 'none'})"
+        )
+
+
 def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
     """Open the store, load library, starts and models, and start serving; returns the app."""
     from knotlab.app.web.resources import load_resources
@@ -83,6 +97,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
 
     task, level = task_of(args), resolve_level(args)
     library_path = library_file(args)
+    check_model_arg(getattr(args, "model", None), db_url(args))
     resources = load_resources(
         library_path,
         defaults.task_set_path(level, "train", task),
@@ -173,13 +188,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         detail="a stored model version or a model file (default: the newest stored model, else "
         "the task's shipped default, else nearest neighbour)",
     )
-    p.add_argument(
-        "--host",
-        default="127.0.0.1",
-        help="interface to serve on (default loopback only; another host is reachable by "
-        "anyone on that network)",
-    )
-    p.add_argument("--port", type=_port, default=8080, help="port (0: any free port)")
+    add_flag(p, "--host", default="127.0.0.1", detail="they can label with your database")
+    add_flag(p, "--port", default=8080, detail="8080 unless given; a busy one: the next free")
     add_flag(
         p,
         "--top",

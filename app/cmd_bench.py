@@ -15,6 +15,7 @@ from knotlab.app.options import (
     add_no_progress_argument,
     add_task_argument,
     add_task_set_argument,
+    bounded,
     check_output,
     integer,
     library_file,
@@ -38,6 +39,7 @@ MAX_LOOKAHEAD_DEPTH = 5
 MAX_LOOKAHEAD_WIDTH = 50
 
 
+@bounded("K >= 1 tasks, or POLICY=K with K >= 1")
 def task_limits(text: str) -> int | dict[str, int]:
     """argparse type of --first: K, or POLICY=K[,POLICY=K...] (one-line message otherwise)."""
     if "=" not in text:
@@ -54,6 +56,7 @@ def task_limits(text: str) -> int | dict[str, int]:
     return limits
 
 
+@bounded(f"lookahead depth 1-{MAX_LOOKAHEAD_DEPTH}, width 1-{MAX_LOOKAHEAD_WIDTH}")
 def policy_list(text: str) -> list[str]:
     """argparse type of --policies: known policy names, lookahead within the bounds above."""
     from knotlab.core.errors import KnotlabError

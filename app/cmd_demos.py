@@ -39,12 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen.add_argument(
         "--bend", type=number(0.0), default=0.03, help="start-rope bend amplitude, m (0.03)"
     )
-    gen.add_argument(
+    add_flag(
+        gen,
         "--observation",
-        choices=[m.value for m in ObservationModel],
         default=DEFAULT_OBSERVATION.value,
-        help="how the rope is perceived: centreline (state estimate, default), cloud (camera "
-        "surface cloud), tracked (centreline estimated from the camera cloud)",
+        detail=f"of the library's clouds (default {DEFAULT_OBSERVATION.value})",
     )
     add_flag(gen, "--force", detail="here: the library --out names")
     add_no_progress_argument(gen)
@@ -63,12 +62,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     imp.add_argument("path", help="the HDF5 demo file (.h5)")
     add_flag(imp, "--out", required=True, detail="the library (.npz)")
-    imp.add_argument(
+    add_flag(
+        imp,
         "--observation",
-        choices=[m.value for m in ObservationModel],
         default=None,
-        help="how the recorded clouds were perceived, so the agent observes a world the same "
-        "way (default: cloud, a camera's surface cloud; a knotlab export keeps its own)",
+        detail="of the recorded clouds, so a world is observed the same way (default: cloud; "
+        "a knotlab export keeps its own)",
     )
     add_task_argument(imp)
     add_flag(imp, "--force", detail="here: the library --out names")
@@ -82,7 +81,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "to the same content hash.",
     )
     exp.add_argument("path", help="the library (.npz)")
-    exp.add_argument("--format", choices=["h5"], default="h5", help="the file format (h5)")
+    add_flag(exp, "--format", choices=("h5",), default="h5", detail="h5 only (the default)")
     add_flag(exp, "--out", required=True, detail="the HDF5 file (.h5)")
     add_flag(exp, "--force", detail="here: the file --out names")
     add_flag(exp, "--json")

@@ -1,10 +1,12 @@
-"""`knotlab labels export|import|tries`: move labels between databases as JSONL or CSV files,
-and try the candidates of labelled states in simulation (richer labels for training)."""
+"""`knotlab labels export|import|tries`: move labels between databases as JSONL or CSV files (or
+the original system's HDF5 layout), and try the candidates of labelled states in simulation
+(richer labels for training)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Literal, cast
 
 from knotlab.app.options import (
@@ -19,9 +21,15 @@ from knotlab.app.options import (
     load_library,
 )
 
-LabelFormat = Literal["jsonl", "csv"]
+LabelFormat = Literal["jsonl", "csv", "h5"]
 FORMATS = cast(tuple[LabelFormat, ...], LABEL_FORMATS)
-SUFFIXES: dict[str, LabelFormat] = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
+SUFFIXES: dict[str, LabelFormat] = {
+    ".jsonl": "jsonl",
+    ".ndjson": "jsonl",
+    ".csv": "csv",
+    ".h5": "h5",
+    ".hdf5": "h5",
+}
 
 
 def export_format(out: str | None, fmt: str | None) -> LabelFormat:
@@ -51,10 +59,13 @@ def _export(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.interchange import export_labels
     from knotlab.labeling_db.store import open_store
 
+    _check_library_arg(args)
     fmt = export_format(args.out, args.format)
     to_file = args.out not in (None, "-")
     if to_file:
         check_output(args.out, force=args.force, kind="labels file", suffixes=tuple(SUFFIXES))
+    if fmt == "h5":
+        return _export_h5(args)
     with open_store(db_url(args), create=False, auto_upgrade=False) as store:
         if to_file:  # atomic: a failed export never leaves half a file behind
             with atomic_open(args.out, newline="") as fh:
@@ -65,10 +76,57 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_library_arg(args: argparse.Namespace) -> None:
+    """A --library that does not exist is refused first, whatever the format reads."""
+    from knotlab.core.errors import InvalidInputError
+
+    if args.library is not None and not Path(args.library).is_file():
+        raise InvalidInputError(f"--library {args.library}: no such demo library file")
+
+
+def _export_h5(args: argparse.Namespace) -> int:
+    """Export to the original HDF5 layout (lossy by design: states, actions, knots, dead ends)."""
+    from knotlab.core.errors import OutputPathError
+    from knotlab.core.interop.h5_labels import export_labels_h5
+    from knotlab.labeling_db.store import open_store
+
+    if args.out in (None, "-"):
+        raise OutputPathError("--format h5 writes a file: give --out FILE.h5")
+    library = load_library(library_file(args), args)  # its segment names label the actions
+    with open_store(db_url(args), create=False, auto_upgrade=False) as store:
+        executions = [item.execution for item in store.stored_executions(source=args.source)]
+        states, dead = export_labels_h5(executions, library, args.out)
+    print(
+        f"exported {states} labelled states and {dead} dead ends (HDF5, the original layout: "
+        f"no candidates, scores or provenance) from {store.url} to {args.out}",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _read_h5(args: argparse.Namespace) -> list:
+    """An HDF5 labels file as stored executions of the library's task."""
+    from knotlab.core.interop.h5_labels import import_labels_h5
+    from knotlab.labeling_db.records import StoredExecution
+
+    library = load_library(library_file(args), args)
+    got = import_labels_h5(args.path, library)
+    task = None if library.task == "overhand" else library.task
+    return [StoredExecution(ex, task=task) for ex in got.executions]
+
+
 def _import(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.interchange import import_labels, read_labels
     from knotlab.labeling_db.store import open_store
 
+    _check_library_arg(args)
+    if (args.format or SUFFIXES.get(Path(args.path).suffix.lower())) == "h5":
+        items = _read_h5(args)  # a bad file is refused before the database opens
+        with open_store(db_url(args), create=True, auto_upgrade=False, persistent=True) as store:
+            ids = store.add_executions(items, if_exists=args.if_exists)
+        n = sum(i is not None for i in ids)
+        print(f"imported {n} executions (HDF5) into {store.url}", file=sys.stderr)
+        return 0
     items = read_labels(args.path, args.format)  # a bad file is refused before the database opens
     with open_store(db_url(args), create=True, auto_upgrade=False, persistent=True) as store:
         n = import_labels(store, args.path, if_exists=args.if_exists, items=items)
@@ -78,7 +136,6 @@ def _import(args: argparse.Namespace) -> int:
 
 def _tries(args: argparse.Namespace) -> int:
     import json
-    from pathlib import Path
 
     from knotlab.core.experiments.tries import check_tries_match, try_candidates, try_jobs
     from knotlab.core.selection.tries import read_tries
@@ -121,16 +178,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p,
         "--format",
         default=None,
-        detail="default: from the --out extension (.jsonl or .csv); jsonl on stdout",
+        detail="default: from the --out extension (.jsonl, .csv or .h5); jsonl on stdout; h5 is "
+        "the original system's layout and keeps only states, actions, knots and dead ends",
     )
-    add_flag(p, "--out", default=None, detail=".jsonl or .csv (default: stdout)")
+    add_flag(p, "--out", default=None, detail=".jsonl, .csv or .h5 (default: stdout)")
     add_flag(p, "--force", detail="here: the labels file --out names")
     p.add_argument("--source", choices=("oracle", "human"), default=None, help="only this source")
+    add_flag(p, "--library", detail="for h5: whose segment names the file uses (default shipped)")
     add_db_argument(p)
     p.set_defaults(func=_export)
     p = sub.add_parser("import", help="validate a labels file, then store all of it or nothing")
-    p.add_argument("path", help="a .jsonl or .csv file written by `knotlab labels export`")
+    p.add_argument(
+        "path",
+        help="a .jsonl or .csv file written by `knotlab labels export`, or an .h5 file in the "
+        "original system's layout ((task, step) groups and f<k> dead ends)",
+    )
     add_flag(p, "--format", default=None, detail="default: by suffix")
+    add_flag(p, "--library", detail="for h5: whose segment names the file uses (default shipped)")
     p.add_argument(
         "--if-exists",
         choices=("error", "skip"),

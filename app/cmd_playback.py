@@ -12,10 +12,12 @@ from knotlab.app.options import (
     add_flag,
     add_task_argument,
     add_task_set_argument,
+    check_input,
     check_output,
     db_url,
     integer,
     number,
+    reads,
     task_levels,
 )
 
@@ -35,6 +37,11 @@ def _run(args: argparse.Namespace) -> int:
 
     spec: str = args.episode
     check_output(args.out, force=args.force, kind="animation", suffixes=(".gif", ".mp4"))
+    # a --library or --task-set that is not there is refused, not passed over for the run's own
+    if args.library is not None:
+        check_input(args.library, flag="--library", kind="demo library")
+    if args.task_set is not None:
+        check_input(args.task_set, flag="--task-set", kind="task set")
     try:
         if spec.startswith("db:"):
             try:
@@ -89,7 +96,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "re-simulated from its start with the recorded choices and drawn top-down."
         ),
     )
-    p.add_argument("episode", metavar="EPISODE")
+    reads(p.add_argument("episode", metavar="EPISODE"))  # a results folder or a database
     add_flag(p, "--out", required=True, detail="the animation: .gif, or .mp4 (imageio-ffmpeg)")
     add_flag(p, "--force", detail="here: the animation --out names")
     p.add_argument(

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from knotlab.app.cmd_app import LOOPBACK, check_host
-from knotlab.app.options import PORT, add_flag, add_task_argument, integer, library_file, task_of
+from knotlab.app.options import add_flag, add_task_argument, integer, library_file, task_of
 
 TOKEN_ENV = "KNOTLAB_TOKEN"
 DEFAULT_PORT = 8090
@@ -33,20 +33,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_task_argument(p)
     add_flag(p, "--library", detail="default: the task's shipped library")
-    p.add_argument(
+    add_flag(
+        p,
         "--model",
         metavar="PATH|none",
-        default=None,
-        help="the Q-model file (default: the task's shipped model; none: nearest neighbour)",
+        detail="default: the task's shipped model; none: nearest neighbour",
     )
-    p.add_argument(
-        "--host",
-        default="127.0.0.1",
-        help="interface to serve on (default loopback only; any other needs a token)",
-    )
-    p.add_argument(
-        "--port", type=PORT, default=DEFAULT_PORT, help=f"port, 0-65535 ({DEFAULT_PORT})"
-    )
+    add_flag(p, "--host", default="127.0.0.1", detail="any other host needs a token")
+    add_flag(p, "--port", default=DEFAULT_PORT, detail=f"default {DEFAULT_PORT}")
     p.add_argument(
         "--token",
         default=None,

@@ -14,7 +14,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import math
 import sys
 from pathlib import Path
 
@@ -26,9 +25,12 @@ from knotlab.app.options import (
     add_task_argument,
     check_output,
     default_db_url,
+    integer_tuple,
     library_file,
     load_library,
     number,
+    number_list,
+    reads,
 )
 from knotlab.core.jsonsafe import json_safe
 from knotlab.core.selection.labels import LabelledExecution
@@ -36,29 +38,10 @@ from knotlab.core.selection.labels import LabelledExecution
 log = logging.getLogger(__name__)
 
 
-def _float_list(text: str) -> list[float]:
-    """'0.1,1,10' -> [0.1, 1.0, 10.0] (argparse type)."""
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected numbers separated by commas, got {text!r}"
-        ) from None
-    if not values or any(not math.isfinite(v) or v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected finite non-negative numbers, got {text!r}")
-    return values
-
-
-def _count_pair(text: str) -> tuple[int, int]:
-    """'50,20' -> (50, 20) (argparse type)."""
-    parts = text.split(",")
-    try:
-        pair = tuple(int(v) for v in parts)
-    except ValueError:
-        pair = ()
-    if len(pair) != 2 or min(pair) < 0:
-        raise argparse.ArgumentTypeError(f"expected two counts >= 0 like 50,20, got {text!r}")
-    return pair
+# --C and --D: '0.1,1,10' -> [0.1, 1.0, 10.0]; a slack weight is finite and >= 0.
+_SLACK_WEIGHTS = number_list(0.0)
+# --landmarks: '50,20' -> (50, 20), counts of landmark states.
+_LANDMARK_COUNTS = integer_tuple(0, 2, "50,20")
 
 
 def load_executions(labels: str | None, db_url: str | None) -> list[LabelledExecution]:
@@ -86,6 +69,7 @@ def _run(args: argparse.Namespace) -> int:
         check_output(out_path, force=args.force, kind="model")
     else:
         check_output_dir(defaults.MODELS_DIR, flag="--out (default folder)")
+    tries = read_tries(args.tries) if args.tries else None  # a bad file: before the library
     library = load_library(library_path, args)
     executions = load_executions(args.labels, args.db)
     if not executions:
@@ -108,7 +92,7 @@ def _run(args: argparse.Namespace) -> int:
         landmarks=args.landmarks,
         select=SelectBy(args.select),
         rank_features=args.rank_features,
-        tries=read_tries(args.tries) if args.tries else None,
+        tries=tries,
         validation_fraction=args.validation_fraction,
         refit_all=args.refit_all,
         random_state=args.seed,
@@ -204,16 +188,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--C",
         dest="C",
-        type=_float_list,
+        type=_SLACK_WEIGHTS,
         default=[1.0],
-        help="margin slack weight; a comma list (0.1,1,10) is swept on the validation split",
+        help="margin slack weight, >= 0; a comma list (0.1,1,10) is swept on the validation split",
     )
     p.add_argument(
         "--D",
         dest="D",
-        type=_float_list,
+        type=_SLACK_WEIGHTS,
         default=[1.0],
-        help="Bellman slack weight; a comma list is swept like --C",
+        help="Bellman slack weight, >= 0; a comma list is swept like --C",
     )
     p.add_argument(
         "--margin-scale",
@@ -223,7 +207,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--landmarks",
-        type=_count_pair,
+        type=_LANDMARK_COUNTS,
         default=(50, 20),
         help="landmark states sampled from the training split: LABELLED,DEAD_ENDS "
         "(default 50,20 as in the original; 0,0 for none)",
@@ -234,11 +218,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="add where each demo stands in the state's registration-cost order (relative cost, "
         "rank one-hots) to the features",
     )
-    p.add_argument(
-        "--tries",
-        default=None,
-        help="tried candidates of the labelled states (`knotlab labels tries`): no margin row "
-        "against a demo that advanced as well as the label's, a full one against one that did not",
+    reads(
+        p.add_argument(
+            "--tries",
+            default=None,
+            metavar="FILE",
+            help="tried candidates of the labelled states (`knotlab labels tries`): no margin "
+            "row against a demo that advanced as well as the label's, a full one against one "
+            "that did not",
+        )
     )
     add_flag(
         p,

@@ -9,6 +9,12 @@ written only with ``--force`` or when it is the command's own output to resume (
 folder, labels tries' file, with a matching identity); a shipped or committed one (static/,
 results/, a task's data folder) only with ``--force``.
 
+A flag whose value is a number takes a bounded type (`integer`, `number`, `number_list`,
+`integer_tuple`, `PORT`, or a parser stamped with `bounded`): a NaN, an infinity or an
+out-of-range value ends in one line when the command line is read. An argument that names a file
+the command reads is marked (`Flag.reads`, `reads`, or a positional named ``path``), so that
+tests/test_promises.py runs every command with one that does not exist.
+
 `--db URL` names the labelling database everywhere; its default is ``$KNOTLAB_DB_URL`` when set,
 else the SQLite file ``knotlab.db`` in the working directory. ``--url`` is kept as a hidden alias
 for scripts written before the flags were unified.
@@ -23,7 +29,7 @@ import argparse
 import math
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,6 +42,7 @@ if TYPE_CHECKING:
     from knotlab.core.demos.tasks import TaskSet
 
 DB_ENV = "KNOTLAB_DB_URL"
+OBSERVATIONS: tuple[str, ...] = ("centreline", "cloud", "tracked")  # core's ObservationModel
 
 
 def default_db_url() -> str:
@@ -46,6 +53,31 @@ def default_db_url() -> str:
 def db_url(args: argparse.Namespace) -> str:
     """The database URL a command should open: its --db, else the default."""
     return getattr(args, "db", None) or default_db_url()
+
+
+# --- Bounded number types: every flag whose value is a number takes one of these ------------
+#
+# tests/app/test_cli_flags.py walks the parser tree and refuses a numeric flag whose type is not
+# stamped with BOUNDS_ATTR (bare int or float, or no type at all for a numeric default): a NaN,
+# an infinity or a count below its minimum must end in one line at parse time, not in a run.
+
+BOUNDS_ATTR = "bounds"  # the attribute a bounded argparse type carries: its bounds, in words
+
+
+def bounded(bounds: str) -> Callable[[Callable[[str], Any]], Callable[[str], Any]]:
+    """Stamp an argparse type that reads numbers (a list of them, a policy name with a depth)
+    as bounded: it refuses, with an ArgumentTypeError, every value outside ``bounds``."""
+
+    def stamp(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+        setattr(parse, BOUNDS_ATTR, bounds)
+        return parse
+
+    return stamp
+
+
+def is_bounded(parse: object) -> bool:
+    """True for an argparse type made by `integer`, `number` or stamped with `bounded`."""
+    return bool(getattr(parse, BOUNDS_ATTR, None))
 
 
 def integer(minimum: int, maximum: int | None = None) -> Callable[[str], int]:
@@ -62,6 +94,7 @@ def integer(minimum: int, maximum: int | None = None) -> Callable[[str], int]:
         return value
 
     parse.__name__ = f"integer {bound}"
+    setattr(parse, BOUNDS_ATTR, bound)
     return parse
 
 
@@ -84,14 +117,57 @@ def number(
         return value
 
     parse.__name__ = f"number {bound}"
+    setattr(parse, BOUNDS_ATTR, bound)
+    return parse
+
+
+def number_list(minimum: float = 0.0) -> Callable[[str], list[float]]:
+    """An argparse type: comma-separated finite numbers >= ``minimum`` ('0.1,1,10')."""
+    one = number(minimum)
+    bound = f"finite numbers >= {minimum:g}"
+
+    def parse(text: str) -> list[float]:
+        try:
+            values = [one(v.strip()) for v in text.split(",") if v.strip()]
+        except argparse.ArgumentTypeError:
+            values = []
+        if not values:
+            raise argparse.ArgumentTypeError(f"expected {bound}, separated by commas, got {text!r}")
+        return values
+
+    parse.__name__ = f"number list {bound}"
+    setattr(parse, BOUNDS_ATTR, bound)
+    return parse
+
+
+def integer_tuple(minimum: int, count: int, example: str) -> Callable[[str], tuple[int, ...]]:
+    """An argparse type: exactly ``count`` comma-separated integers >= ``minimum`` (``example``)."""
+    one = integer(minimum)
+    bound = f"{count} integers >= {minimum}"
+
+    def parse(text: str) -> tuple[int, ...]:
+        parts = text.split(",")
+        try:
+            values = tuple(one(v.strip()) for v in parts)
+        except argparse.ArgumentTypeError:
+            values = ()
+        if len(values) != count:
+            raise argparse.ArgumentTypeError(f"expected {bound} like {example}, got {text!r}")
+        return values
+
+    parse.__name__ = f"integer tuple {bound}"
+    setattr(parse, BOUNDS_ATTR, bound)
     return parse
 
 
 # Shared argument types: a seed feeds NumPy's SeedSequence (>= 0), a worker count is >= 1.
 SEED = integer(0)
 WORKERS = integer(1)
+PORT = integer(0, 65535)  # a TCP port; 0: any free one
 LEVEL_NAME = re.compile(r"[a-z0-9_-]+")  # it becomes part of a file name: no folders, no dots
-LABEL_FORMATS: tuple[str, ...] = ("jsonl", "csv")
+LABEL_FORMATS: tuple[str, ...] = ("jsonl", "csv", "h5")  # h5: the original system's layout
+# One vocabulary for --format: every command takes the subset it can write or read.
+FILE_FORMATS: tuple[str, ...] = ("jsonl", "csv", "h5")
 
 
 def level_name(text: str) -> str:
@@ -133,6 +209,7 @@ class Flag:
     choices: tuple[str, ...] | None = None
     metavar: str | None = None
     aliases: tuple[str, ...] = ()
+    reads: bool = False  # the value names a file the command reads (see INPUT_ATTR)
 
     @property
     def spellings(self) -> tuple[str, ...]:
@@ -185,12 +262,16 @@ _declare(
     metavar="PATH",
     # `knotlab label` and `knotlab suggest` spellings before the flags were unified
     aliases=("--task-file", "--tasks-file"),
+    reads=True,
 )
 _declare("--tasks", "use the first N tasks of the task set only", type=integer(1), metavar="N")
-_declare("--library", "demo library file (.npz)", metavar="PATH")
-_declare("--model", "trained Q-model that ranks the candidates", metavar="PATH")
+_declare("--library", "demo library file (.npz)", metavar="PATH", reads=True)
+_declare("--model", "trained Q-model that ranks the candidates", metavar="PATH", reads=True)
 _declare(
-    "--labels", "labels file (.jsonl or .csv, as `knotlab labels export` writes)", metavar="FILE"
+    "--labels",
+    "labels file (.jsonl or .csv, as `knotlab labels export` writes)",
+    metavar="FILE",
+    reads=True,
 )
 _declare(
     "--top",
@@ -199,7 +280,20 @@ _declare(
     metavar="N",
     aliases=("--top-k",),  # `knotlab app`'s spelling before the flags were unified
 )
-_declare("--format", "labels file format", choices=LABEL_FORMATS)
+_declare("--format", "file format", choices=FILE_FORMATS)
+_declare(
+    "--observation",
+    "how the rope is perceived: centreline (a rope-state estimate), cloud (a camera's surface "
+    "cloud), tracked (a centreline estimated from the camera cloud)",
+    choices=OBSERVATIONS,
+)
+_declare(
+    "--host",
+    "interface to serve on (default 127.0.0.1: this machine only; another address is reachable "
+    "by anyone on that network)",
+    metavar="HOST",
+)
+_declare("--port", "TCP port to serve on, 0-65535 (0: any free port)", type=PORT, metavar="PORT")
 _declare("--out", "file to write", metavar="FILE")
 _declare("--out-dir", "folder to write into", metavar="DIR")
 
@@ -228,13 +322,54 @@ def add_flag(
     settings.update(kwargs)
     action = parser.add_argument(flag.name, dest=flag.dest, help=help, **settings)
     setattr(action, SHARED_ATTR, flag)
+    if flag.reads:
+        reads(action)
     value = {k: v for k, v in settings.items() if k in ("action", "type", "choices", "metavar")}
     for alias in flag.aliases:
         hidden = parser.add_argument(
             alias, dest=flag.dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **value
         )
         setattr(hidden, SHARED_ATTR, flag)
+        if flag.reads:
+            reads(hidden)
     return action
+
+
+# --- Inputs: the arguments that name a file a command reads -------------------------------
+#
+# A missing one ends the command in one line (exit 2) before any work; tests/test_promises.py
+# finds them through these marks and runs every command with a path that does not exist.
+
+INPUT_ATTR = "reads_input"  # stamped on an argparse action whose value names a file to read
+INPUT_POSITIONALS: tuple[str, ...] = ("path",)  # `demos info PATH`, `labels import PATH`, ...
+
+
+def reads(action: argparse.Action) -> argparse.Action:
+    """Mark ``action`` (a command's own argument) as naming a file the command reads."""
+    setattr(action, INPUT_ATTR, True)
+    return action
+
+
+def is_input(action: argparse.Action) -> bool:
+    """True for an argument that names a file the command reads: a `reads` flag (``--library``,
+    ``--task-set``, ``--model``, ``--labels``, a command's own marked one) or a positional
+    ``path``."""
+    if getattr(action, INPUT_ATTR, False):
+        return True
+    return not action.option_strings and action.dest in INPUT_POSITIONALS
+
+
+def check_input(path: str | Path, *, flag: str, kind: str) -> Path:
+    """``path`` as given for ``flag``, refused in one line (exit 2) unless it is an existing
+    file: for a command that would otherwise fall back on another file without a word."""
+    from knotlab.core.errors import InvalidInputError
+
+    path = Path(path)
+    if path.is_dir():
+        raise InvalidInputError(f"{flag} {path}: is a folder, expected a {kind} file")
+    if not path.is_file():
+        raise InvalidInputError(f"{flag} {path}: {kind} file not found")
+    return path
 
 
 def add_db_argument(parser: argparse.ArgumentParser | argparse._ActionsContainer) -> None:
@@ -325,16 +460,30 @@ def load_task_set(path: str | Path, args: argparse.Namespace) -> TaskSet:
     return task_set
 
 
+def in_shipped_place(path: str | Path) -> bool:
+    """True for a path, existing or not, in static/, results/ or a task's data folder."""
+    protected = (defaults.STATIC_DIR, *defaults.shipped_dirs())
+    resolved = Path(path).resolve()
+    return any(resolved.is_relative_to(d.resolve()) for d in protected)
+
+
 def is_committed(path: str | Path) -> bool:
     """True for an existing path in a shipped or committed place: static/, results/ or a task's
     data folder (decided cheaply, without asking git: such a path that exists is treated as
     committed)."""
+    return Path(path).exists() and in_shipped_place(path)
+
+
+def fresh_file(path: str | Path, *, own: Collection[Path] = ()) -> Path:
+    """``path`` if nothing is there (or it is one of ``own``, the files this session wrote), else
+    the first of ``stem-1.ext``, ``stem-2.ext``, ... that is free: for an output written without
+    asking (the app's exports), which never replaces a file it did not make."""
     path = Path(path)
-    if not path.exists():
-        return False
-    protected = (defaults.STATIC_DIR, *defaults.shipped_dirs())
-    resolved = path.resolve()
-    return any(resolved.is_relative_to(d.resolve()) for d in protected)
+    candidate, n = path, 0
+    while candidate.exists() and candidate not in own:
+        n += 1
+        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
+    return candidate
 
 
 def check_output(

@@ -1,12 +1,19 @@
 """The Playback tab: replay a Table I episode (a bench results directory) or a stored labelling
 episode as an animation, with a step timeline, play / pause / speed, the chosen demo, its score
 and the stage reached per step, and export to a GIF for slides. Draws under /playback.
+
+Export GIF follows the command line's output rule without a --force to give: the GIF is sent to
+the browser and kept in ``exports/`` of the app's working directory under a name no file has
+(``<episode>.gif``, else ``<episode>-1.gif``, ...; a file this panel wrote is rewritten), never in
+static/, results/ or a task's data folder; the status line names the file.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
+import re
 import tempfile
 import threading
 import time
@@ -17,6 +24,7 @@ import numpy as np
 import viser
 
 from knotlab.app import defaults
+from knotlab.app.options import fresh_file, in_shipped_place
 from knotlab.app.web.geometry import tube_faces, tube_vertices
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.experiments.playback import (
@@ -32,6 +40,56 @@ from knotlab.core.tasks import get_task
 FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
 SPEEDS = ("1x", "2x", "4x", "8x")
 STORE = "labelling store (episode id)"
+EXPORT_DIR = Path("exports")  # relative to the working directory, as `knotlab train`'s models/
+
+
+def export_name(title: str) -> str:
+    """A file stem for an episode title: 'la2x5 on main-test-0000' -> 'la2x5-on-main-test-0000'."""
+    stem = re.sub(r"[^A-Za-z0-9_.]+", "-", title).strip("-.")[:80]
+    return stem or "episode"
+
+
+def export_path(folder: Path, stem: str, own: set[Path]) -> Path:
+    """Where an export of ``stem`` goes in ``folder``: a name no file has, or one in ``own`` (the
+    files this panel wrote); never a shipped or committed place (static/, results/, a task's
+    data: an OutputPathError)."""
+    from knotlab.core.errors import OutputPathError
+
+    path = folder / f"{stem}.gif"
+    if in_shipped_place(path):
+        raise OutputPathError(
+            f"{folder} is a shipped or committed folder (static/, results/ or a task's data); "
+            "the app does not export into it"
+        )
+    return fresh_file(path, own=own)
+
+
+def save_export(data: bytes, folder: Path, stem: str, own: set[Path]) -> Path:
+    """Write ``data`` to `export_path` and add the file to ``own``: a new file is created
+    exclusively (one that appears meanwhile is not replaced: the next free name is taken), one
+    of ``own`` is replaced whole."""
+    folder.mkdir(parents=True, exist_ok=True)
+    while True:
+        path = export_path(folder, stem, own)
+        if path in own:  # its own file: replaced whole, through a fresh temporary beside it
+            fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}-", suffix=".tmp")
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, path)
+            return path
+        try:
+            fh = path.open("xb")
+        except FileExistsError:
+            continue  # made by someone else since it was picked: take the next name
+        own.add(path)
+        try:
+            with fh:
+                fh.write(data)
+        except BaseException:
+            path.unlink(missing_ok=True)  # its own half-written file
+            own.discard(path)
+            raise
+        return path
 
 
 def results_dirs(root: Path = defaults.RESULTS_DIR) -> list[str]:
@@ -96,6 +154,8 @@ class PlaybackPanel:
         self._playing = threading.Event()
         self._player: threading.Thread | None = None
         self._updating = False
+        self.export_dir = EXPORT_DIR
+        self._exported: set[Path] = set()  # the files this panel wrote (it may rewrite those)
         self.load_button.on_click(lambda _e: self.load())
         self.play_button.on_click(lambda _e: self.toggle())
         self.speed.on_click(lambda _e: self._set_speed(self.speed.value))
@@ -242,16 +302,25 @@ class PlaybackPanel:
         if self.episode is None or self.library is None:
             return
         self.status.content = "rendering the GIF..."
+        stem = export_name(self.episode.title)
         with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "knot.gif"
+            path = Path(tmp) / f"{stem}.gif"
             try:
                 export_playback(self.episode, self.library, path, fps=15, speed=4.0, size=400)
             except Exception as exc:
                 self.status.content = f"**export failed**: {exc}"
                 return
             data = path.read_bytes()
-        self.client.send_file_download("knot.gif", data, save_immediately=True)
-        self.status.content = f"exported knot.gif ({len(data) / 1024:.0f} kB)"
+        try:
+            saved = save_export(data, self.export_dir, stem, self._exported)
+        except Exception as exc:  # a read-only or shipped folder: the download still goes out
+            kept = f"not kept on the server: {exc}"
+            name = f"{stem}.gif"
+        else:
+            kept = f"kept as {saved.resolve()}"
+            name = saved.name
+        self.client.send_file_download(name, data, save_immediately=True)
+        self.status.content = f"exported {name} ({len(data) / 1024:.0f} kB); {kept}"
 
     def stop(self) -> None:
         """Stop playing and show the labelling view again."""

@@ -3,7 +3,8 @@
 A flag name that several commands take must mean the same in all of them: it is declared once in
 app/options.py (a `Flag`: one dest, one kind of value, one help sentence that a command may only
 extend) and added with `options.add_flag`, which stamps the argparse action with its `Flag`.
-A flag name that only one command takes is that command's own business.
+A flag name that only one command takes is that command's own business. Every flag whose value
+is a number, shared or not, takes a bounded type from app/options.py (the walk at the end).
 """
 
 from __future__ import annotations
@@ -94,7 +95,11 @@ def test_shared_flags_keep_their_declared_dest_kind_and_help() -> None:
                 problems.append(f"{where}: dest {action.dest!r}, declared {flag.dest!r}")
             if action.help != argparse.SUPPRESS and not str(action.help).startswith(flag.help):
                 problems.append(f"{where}: help {action.help!r} does not say {flag.help!r}")
-            if option == flag.name:
+            if flag.choices is not None:  # one vocabulary; a command takes the subset it can
+                extra = set(action.choices or ()) - set(flag.choices)
+                if extra:
+                    problems.append(f"{where}: choices {sorted(extra)} are not declared")
+            elif option == flag.name:
                 kinds[option].add(_kind(action))
     problems += [
         f"{o}: takes {sorted(k)} in different commands" for o, k in kinds.items() if len(k) > 1
@@ -123,6 +128,8 @@ TASK_COMMANDS = [
     "app",
     "playback",
     "suggest",
+    "demos import",
+    "serve",
 ]
 NO_TASK_COMMANDS = {
     "tie": "runs the overhand knot's fixed sequence on a straight rope: no task files",
@@ -133,6 +140,7 @@ NO_TASK_COMMANDS = {
     "labels import": "copies labels as they are",
     "labels agreement": "compares labellers' choices",
     "demos info": "describes the named file, whatever its task",
+    "demos export": "copies the named library, whatever its task",
     "tasks info": "describes the named file, whatever its task",
     "model info": "describes the named file, whatever its task",
 }
@@ -158,6 +166,7 @@ def test_task_defaults_to_overhand_and_unknown_tasks_fail_in_one_line(
         "bench": ["--out-dir", "r"],
         "playback": ["r:nn:t-0", "--out", "x.gif"],
         "demos generate": ["--out", "x.npz"],
+        "demos import": ["x.h5", "--out", "x.npz"],
         "tasks generate": ["--seed", "0"],
     }.get(command, [])
     parser = cli.build_parser()
@@ -194,3 +203,116 @@ def test_renamed_flags_are_gone(capsys: pytest.CaptureFixture[str]) -> None:
         with pytest.raises(SystemExit):
             parser.parse_args(argv.split())
     assert "unrecognized arguments" in capsys.readouterr().err
+
+
+# --- Every number a flag takes is bounded ---------------------------------------------------
+#
+# A flag whose value is a number (an int or float default, or a type that reads numbers) takes a
+# bounded type from app/options.py (`integer`, `number`, `number_list`, `integer_tuple`, `PORT`,
+# or a parser stamped with `options.bounded`), never bare int or float or no type at all: NaN,
+# an infinity, a negative count or a typo like 1e9 then ends in one line when the command line is
+# read, not minutes into a run.
+
+_NUMBER_SAMPLES = ("1", "0.5", "1,2")
+
+
+def _is_number(value: object) -> bool:
+    if isinstance(value, (list, tuple)):
+        return bool(value) and all(_is_number(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _reads_numbers(action: argparse.Action) -> bool:
+    """A flag whose value is a number or numbers: by its default, or by what its type returns."""
+    if _is_number(action.default) or action.type in (int, float):
+        return True
+    if options.is_bounded(action.type):
+        return True
+    if not callable(action.type):
+        return False
+    for sample in _NUMBER_SAMPLES:
+        try:
+            value = action.type(sample)
+        except Exception:  # any refusal: the sample is not its kind of value
+            continue
+        if _is_number(value):
+            return True
+    return False
+
+
+def unbounded_number_flags(parser: argparse.ArgumentParser) -> list[str]:
+    """'command --flag: why' for every number flag of the tree without a bounded type (or whose
+    bounded type lets NaN or an infinity through, or refuses its own default)."""
+    problems = []
+    for command, sub in _commands(parser):
+        for action in sub._actions:
+            if action.nargs == 0 or isinstance(
+                action, (argparse._HelpAction, argparse._SubParsersAction)
+            ):
+                continue
+            if not _reads_numbers(action):
+                continue
+            name = f"{command or 'knotlab'} {'/'.join(action.option_strings) or action.dest}"
+            kind = getattr(action.type, "__name__", repr(action.type))
+            if not options.is_bounded(action.type):
+                problems.append(
+                    f"{name}: a number flag with type {kind}; give it a bounded type from "
+                    "app/options.py (integer, number, ...) so that a bad value fails in one line"
+                )
+                continue
+            for bad in ("nan", "inf", "-1e999", "1e999"):
+                try:
+                    action.type(bad)
+                except argparse.ArgumentTypeError:
+                    continue
+                problems.append(f"{name}: its type {kind} accepts {bad!r}")
+            default = action.default
+            if default is None or default == argparse.SUPPRESS:
+                continue
+            text = ",".join(map(str, default)) if isinstance(default, (list, tuple)) else default
+            try:
+                action.type(str(text))
+            except argparse.ArgumentTypeError as exc:
+                problems.append(f"{name}: the default {default!r} is out of its bounds ({exc})")
+    return problems
+
+
+def test_every_number_flag_of_every_command_has_a_bounded_type() -> None:
+    assert unbounded_number_flags(cli.build_parser()) == []
+
+
+def test_the_number_flag_walk_finds_an_unbounded_flag() -> None:
+    """The walk above, proven on a made-up command that breaks the rule in every way it can."""
+    parser = argparse.ArgumentParser(prog="fake")
+    sub = parser.add_subparsers(dest="command")
+    p = sub.add_parser("run")
+    p.add_argument("--n", type=int, default=3)
+    p.add_argument("--rate", default=0.5)  # no type: a number default, and text when given
+    p.add_argument("--scale", type=float)
+    p.add_argument("--counts", type=lambda s: [int(v) for v in s.split(",")])
+    p.add_argument("--sloppy", type=options.bounded("says so")(lambda s: float(s)))
+    p.add_argument("--tight", type=options.integer(5), default=3)  # a default out of bounds
+    p.add_argument("--ok", type=options.integer(1), default=3)
+    p.add_argument("--fine", type=options.number(0.0, above=True), default=0.5)
+    p.add_argument("--name", default="x")
+    p.add_argument("--flag", action="store_true")
+    found = [problem.split(":")[0] for problem in unbounded_number_flags(parser)]
+    assert found == ["run --n", "run --rate", "run --scale", "run --counts"] + [
+        "run --sloppy"
+    ] * 4 + ["run --tight"]
+
+
+def test_lookahead_depth_and_width_are_bounded_when_the_command_line_is_read(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    parser = cli.build_parser()
+    for policies in ("la99x99", "la6x1", "la1x51", "la99999999999999999999x1"):
+        with pytest.raises(SystemExit) as exit_:  # parse time: before any file is read
+            parser.parse_args(["bench", "--out-dir", "r", "--policies", policies])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1, err
+        assert f"argument --policies: {policies}: lookahead depth must be 1-5 and width" in err
+    assert parser.parse_args(["bench", "--out-dir", "r", "--policies", "la5x50"]).policies == [
+        "la5x50"
+    ]
