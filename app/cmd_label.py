@@ -13,6 +13,7 @@ from knotlab.app.options import (
     add_no_progress_argument,
     add_task_argument,
     add_task_set_argument,
+    check_input,
     db_url,
     integer,
     library_file,
@@ -50,6 +51,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     # at least 1: a budget of 0 would simulate nothing and record every task as unsolved
     add_flag(p, "--top", default=10, detail="the oracle tries them in registration-cost order (10)")
     p.add_argument("--sim-budget", type=integer(1), default=60, help="simulated actions per task")
+    p.add_argument(
+        "--from-policy",
+        choices=("greedy",),
+        default=None,
+        help="label where this policy goes (DAgger-style): roll it out with --model from each "
+        "start and let the oracle label every state it reaches after the start; each label "
+        "records the policy, model and round that reached its state",
+    )
+    add_flag(p, "--model", detail="with --from-policy: the model the policy ranks with")
+    p.add_argument(
+        "--round",
+        type=integer(1, maximum=1000),
+        default=1,
+        help="with --from-policy: the labelling round recorded with the labels (1)",
+    )
     add_flag(p, "--workers")
     add_no_progress_argument(p)
     add_flag(p, "--json", detail="a summary after the text")
@@ -67,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import open_store
 
     args.db = db_url(args)
+    if args.model is not None:  # a missing model is named first, whatever else is wrong
+        check_input(args.model, flag="--model", kind="model")
     task_path = task_set_file(args, args.split)
     library_path = library_file(args)
     tasks = load_task_set(task_path, args)
@@ -77,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
             "training starts may be labelled (the test set must stay unseen)"
         )
     selected = list(tasks) if args.tasks is None else list(tasks)[: args.tasks]
+    if args.from_policy is not None:
+        return _run_policy_states(args, library_path, library, selected)
+    if args.model is not None:
+        raise InvalidInputError("--model is used with --from-policy only")
     t0 = time.perf_counter()
     solved = sims = dead = 0
     with open_store(args.db, persistent=True) as store:
@@ -118,4 +140,78 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.json:
         print(json.dumps(summary))
+    return 0
+
+
+def _run_policy_states(args: argparse.Namespace, library_path, library, selected: list) -> int:
+    """One round of policy-state labels into the store (resumable: starts done are skipped)."""
+    from pathlib import Path
+
+    from knotlab.core.errors import InvalidInputError
+    from knotlab.core.experiments.policy_states import (
+        label_policy_state_tasks,
+        policy_execution_prefix,
+    )
+    from knotlab.core.selection.compatibility import check_compatible
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.tasks import get_task
+    from knotlab.labeling_db.store import open_store
+
+    if args.model is None:
+        raise InvalidInputError("--from-policy needs --model (the model the policy ranks with)")
+    model_path = Path(args.model)
+    model = QModel.load(model_path)
+    check_compatible(library, model, get_task(task_of(args)))
+    t0 = time.perf_counter()
+    states = dead = reached_knot = 0
+    with open_store(args.db, persistent=True) as store:
+        store.check_task(task_of(args))
+        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        prefix = {
+            t.task_id: policy_execution_prefix(args.from_policy, args.round, t.task_id)
+            for t in selected
+        }
+        todo = [t for t in selected if not any(i.startswith(prefix[t.task_id]) for i in stored)]
+        store.register_library(library.content_hash(), task=task_of(args))
+        store.add_labeller("oracle", "oracle")
+        print(
+            f"round {args.round}: {len(selected) - len(todo)} of {len(selected)} starts already "
+            f"done in {args.db}; rolling {args.from_policy} with model {model.content_hash()} "
+            f"out on {len(todo)}",
+            file=sys.stderr,
+        )
+        results = label_policy_state_tasks(
+            library_path,
+            model_path,
+            todo,
+            round_index=args.round,
+            policy=args.from_policy,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
+        for result in results:
+            store.add_executions(list(result.executions), if_exists="skip")
+            states += sum(len(e.steps) > 0 for e in result.executions)
+            dead += sum(len(e.dead_ends) for e in result.executions)
+            reached_knot += result.rollout_knot
+    wall = time.perf_counter() - t0
+    print(
+        f"round {args.round}: {args.from_policy} knotted {reached_knot}/{len(todo)} rollouts; "
+        f"{states} reached states labelled with a way to the knot, {dead} dead ends; {wall:.0f} s"
+    )
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "round": args.round,
+                    "starts": len(todo),
+                    "rollout_knots": reached_knot,
+                    "labelled_states": states,
+                    "dead_ends": dead,
+                    "wall_s": round(wall, 1),
+                    "model_hash": model.content_hash(),
+                    "db": args.db,
+                }
+            )
+        )
     return 0

@@ -197,6 +197,42 @@ class _Search:
         return result, exhaustive
 
 
+def oracle_from(
+    agent: Agent,
+    world: World,
+    snapshot: SimSnapshot,
+    *,
+    steps_left: int,
+    params: OracleParams = OracleParams(),
+) -> tuple[list[LabelledStep], list[DeadEndState], int, bool]:
+    """The oracle's search from a state in the middle of an episode (restored from
+    ``snapshot``): its steps to the goal within ``steps_left`` (empty: none found), the dead
+    ends met (the state itself when the search was exhaustive and found nothing), simulations
+    used and whether the budget ran out. Step indices count from this state."""
+    world.restore(snapshot)
+    cloud = agent.observe(world)
+    nodes = world.rope_nodes()
+    stage = agent.task.stage(nodes).stage
+    search = _Search(world, agent, params)
+    steps, exhaustive = search.solve(snapshot, cloud, nodes, stage, steps_left)
+    dead = list(search.dead_ends)
+    if steps is None and exhaustive:
+        dead.append(DeadEndState(cloud, nodes))
+    numbered = [
+        LabelledStep(
+            i,
+            s.cloud_n3,
+            s.chosen_demo,
+            s.outcome,
+            s.rope_nodes_k3,
+            s.candidates,
+            s.candidate_scores_c,
+        )
+        for i, s in enumerate(steps or [])
+    ]
+    return numbered, dead, search.sims, search.exhausted
+
+
 def label_task(
     agent: Agent,
     world: World,

@@ -268,6 +268,9 @@ class QModelSearch:
     # Tried candidates (`core.selection.tries`) by (execution id, step): margin rows follow them
     tries: dict | None = field(default=None, repr=False)
     validation_fraction: float = 0.2
+    # Executions held out by id (overrides the seeded fraction): a fixed validation set, so
+    # models fitted on growing label sets are compared on the same held-out executions.
+    validation_ids: frozenset[str] | None = None
     refit_all: bool = False
     random_state: int = 0
     workers: int | None = None
@@ -293,9 +296,13 @@ class QModelSearch:
         executions = list(executions)
         if not executions:
             raise InvalidInputError("no labelled executions to train on")
-        train_idx, val_idx = split_executions(
-            len(executions), self.validation_fraction, self.random_state
-        )
+        if self.validation_ids is not None:
+            held = np.array([e.execution_id in self.validation_ids for e in executions])
+            train_idx, val_idx = np.flatnonzero(~held), np.flatnonzero(held)
+        else:
+            train_idx, val_idx = split_executions(
+                len(executions), self.validation_fraction, self.random_state
+            )
         landmarks = sample_landmarks(
             [executions[i] for i in train_idx],
             n_labelled=self.landmarks[0],
