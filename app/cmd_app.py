@@ -1,8 +1,9 @@
 """`knotlab app`: serve the labelling web app (viser) on this machine.
 
 With no flags it is useful at once: the SQLite file knotlab.db is created and migrated, the
-shipped library and the level's training starts are registered in it, and candidates are ranked
-by the newest stored model, else the shipped default model, else by registration cost.
+shipped library, the level's training starts and the shipped model's oracle labels are
+registered in it, and candidates are ranked by the store's active model (on a new store: the
+shipped default model, else the newest stored model, else by registration cost).
 """
 
 from __future__ import annotations
@@ -185,8 +186,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p,
         "--model",
         metavar="VERSION|PATH",
-        detail="a stored model version or a model file (default: the newest stored model, else "
-        "the task's shipped default, else nearest neighbour)",
+        detail="a stored model version or a model file, made the active one (default: the "
+        "store's active model; a new store starts with the task's shipped default)",
     )
     add_flag(p, "--host", default="127.0.0.1", detail="they can label with your database")
     add_flag(p, "--port", default=8080, detail="8080 unless given; a busy one: the next free")

@@ -34,6 +34,7 @@ import json  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from datetime import UTC, datetime  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +65,9 @@ CONTROL_SEED_OFFSET = 7919  # extra training starts: the level's seed plus this 
 def _append(path: Path, executions: list[LabelledExecution]) -> None:
     """Append executions to a labels JSONL file (header written on creation)."""
     buf = io.StringIO()
-    write_labels([StoredExecution(e) for e in executions], buf, "jsonl")
+    now = datetime.now(UTC)  # when it was labelled (the labels format requires it)
+    items = [StoredExecution(e, started_at=now, finished_at=now) for e in executions]
+    write_labels(items, buf, "jsonl")
     lines = buf.getvalue().splitlines(keepends=True)
     with path.open("a", encoding="utf-8") as fh:
         fh.writelines(lines if fh.tell() == 0 else lines[1:])

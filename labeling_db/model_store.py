@@ -1,8 +1,11 @@
-"""Trained models: saved with their arrays and the labels they were trained on."""
+"""Trained models: saved with their arrays and the labels they were trained on, and which one
+is active (the app ranks with it, across restarts)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -18,13 +21,53 @@ from knotlab.labeling_db.models import (
     DemoLibrary,
     Episode,
     Label,
+    ModelActivation,
     ModelArray,
     ModelTrainingLabel,
     TrainedModel,
+    utcnow,
 )
 from knotlab.labeling_db.records import ModelInfo, ModelRecord
 from knotlab.labeling_db.rows import _check_json, _check_key, _library_id
 from knotlab.labeling_db.store_base import StoreBase
+
+_PG_ACTIVATION_LOCK = 0x6B6E6F76  # serialises "activate if still active" on PostgreSQL
+
+
+@dataclass(frozen=True)
+class ActiveModel:
+    """The model the app ranks with (None: nearest neighbour), since when and why."""
+
+    version: str | None
+    activated_at: datetime
+    reason: str
+
+
+def _active_row(s: Session) -> tuple[ModelActivation, str | None] | None:
+    """The newest activation and its model's version (None: no model was ever activated)."""
+    row = s.execute(
+        select(ModelActivation, TrainedModel.version)
+        .outerjoin(TrainedModel, ModelActivation.model_id == TrainedModel.id)
+        .order_by(ModelActivation.id.desc())
+        .limit(1)
+    ).first()
+    return None if row is None else (row[0], row[1])
+
+
+def _activate(s: Session, url: str, version: str | None, reason: str) -> ActiveModel:
+    """Append an activation of ``version`` (in the caller's transaction) unless it is active."""
+    current = _active_row(s)
+    if current is not None and current[1] == version:
+        return ActiveModel(version, current[0].activated_at, current[0].reason)
+    model_id = None
+    if version is not None:
+        model_id = s.scalar(select(TrainedModel.id).where(TrainedModel.version == version))
+        if model_id is None:
+            raise RecordNotFoundError(f"{url}: no model version {version!r} to activate")
+    row = ModelActivation(model_id=model_id, reason=reason, activated_at=utcnow())
+    s.add(row)
+    s.flush()
+    return ActiveModel(version, row.activated_at, reason)
 
 
 class ModelStore(StoreBase):
@@ -138,6 +181,45 @@ class ModelStore(StoreBase):
             return ModelRecord(_model_info(model, lib, int(n or 0)), arrays)
 
         return self._run(work, write=False)
+
+    # --- the active model
+
+    def active_model(self) -> ActiveModel | None:
+        """The model activated last (None: none ever was, e.g. a new store)."""
+
+        def work(s: Session) -> ActiveModel | None:
+            found = _active_row(s)
+            if found is None:
+                return None
+            row, version = found
+            return ActiveModel(version, row.activated_at, row.reason)
+
+        return self._run(work, write=False)
+
+    def set_active_model(self, version: str | None, *, reason: str) -> ActiveModel:
+        """Make stored model ``version`` (None: nearest neighbour) the active one; a no-op when
+        it already is. Only stored models can be active, so a restart can always load it."""
+        _check_key("version", version, optional=True)
+        _check_key("reason", reason)
+        return self._run(lambda s: _activate(s, self.url, version, reason), write=True)
+
+    def activate_if_active(self, version: str, *, expected: str | None, reason: str) -> bool:
+        """Activate ``version`` only while ``expected`` is still the active model (None: no
+        model or nearest neighbour); False, and nothing changed, when someone switched since."""
+        _check_key("version", version)
+        _check_key("expected", expected, optional=True)
+        _check_key("reason", reason)
+
+        def work(s: Session) -> bool:
+            if self.dialect == "postgresql":  # SQLite writers are serialised by BEGIN IMMEDIATE
+                s.execute(select(func.pg_advisory_xact_lock(_PG_ACTIVATION_LOCK)))
+            current = _active_row(s)
+            if (None if current is None else current[1]) != expected:
+                return False
+            _activate(s, self.url, version, reason)
+            return True
+
+        return self._run(work, write=True)
 
     def model_training_executions(self, version: str) -> list[str]:
         """Execution ids whose labels trained model `version`."""

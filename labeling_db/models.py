@@ -34,7 +34,7 @@ from knotlab.core.tasks import DEFAULT_TASK
 # The Alembic revision these classes describe (newest in labeling_db/migrations/versions): a
 # database stamped with it is opened without loading Alembic. Bump it with every new migration;
 # tests/test_db_schema.py checks it against the migrations.
-SCHEMA_REVISION = "0003"
+SCHEMA_REVISION = "0004"
 OUTCOME_VALUES = STEP_OUTCOMES  # StepOutcome's values, as the 0001 migration wrote them
 SOURCE_VALUES = ("oracle", "human")
 EPISODE_STATUSES = ("in_progress", "completed", "abandoned")
@@ -244,3 +244,18 @@ class ModelTrainingLabel(Base):
     label_id: Mapped[int] = mapped_column(
         ForeignKey("labels.id", ondelete="RESTRICT"), primary_key=True, index=True
     )
+
+
+class ModelActivation(Base):
+    """Which model the app ranks with, from when and why: the newest row is the active model.
+
+    Append-only (0004), so the history of switches stays readable; a NULL model is
+    nearest-neighbour ranking. A store without rows has never had a model activated.
+    """
+
+    __tablename__ = "model_activations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    model_id: Mapped[int | None] = mapped_column(ForeignKey("trained_models.id"))
+    reason: Mapped[str] = mapped_column(String(200))
+    activated_at: Mapped[datetime] = mapped_column(default=utcnow)

@@ -10,6 +10,8 @@ Shape suffixes: n = cloud points, k = rope nodes, c = candidates shown.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy import func, select, text
@@ -31,9 +33,10 @@ from knotlab.labeling_db.engine import (
     schema_status,
     upgrade_database,
 )
+from knotlab.labeling_db.errors import ConflictError, InvalidRecordError
 from knotlab.labeling_db.executions import ExecutionsStore
 from knotlab.labeling_db.labelling import LabellingStore
-from knotlab.labeling_db.model_store import ModelStore
+from knotlab.labeling_db.model_store import ActiveModel, ModelStore
 from knotlab.labeling_db.models import (
     DeadEnd,
     DemoLibrary,
@@ -58,12 +61,16 @@ from knotlab.labeling_db.rows import _unlabelled_start_states
 
 __all__ = [
     "DEFAULT_URL",
+    "ActiveModel",
     "EpisodeInfo",
     "LabelInfo",
+    "LabelMix",
     "LabellerProgress",
+    "LabellerShare",
     "ModelInfo",
     "ModelRecord",
     "SchemaStatus",
+    "SeedResult",
     "StateProvenance",
     "StateRecord",
     "Store",
@@ -75,8 +82,97 @@ __all__ = [
 ]
 
 
+TRAINING_STATUSES: tuple[str, ...] = ("completed", "in_progress")  # what a retrain fits on
+
+
+@dataclass(frozen=True)
+class SeedResult:
+    """What seeding the store with a fixed set of oracle executions added."""
+
+    added_executions: int
+    added_labels: int
+    present_executions: int  # already stored: seeding again adds nothing
+
+
+@dataclass(frozen=True)
+class LabellerShare:
+    """One labeller's labels among those a retrain would fit on."""
+
+    labeller: str
+    source: str  # oracle | human
+    labels: int
+    executions: int
+
+
+@dataclass(frozen=True)
+class LabelMix:
+    """The labels a retrain would fit on (completed and in-progress episodes), per labeller."""
+
+    shares: tuple[LabellerShare, ...]
+
+    @property
+    def labels(self) -> int:
+        """Labelled states in all."""
+        return sum(sh.labels for sh in self.shares)
+
+    @property
+    def executions(self) -> int:
+        """Executions (episodes) with at least one label."""
+        return sum(sh.executions for sh in self.shares)
+
+    def of_source(self, source: str) -> tuple[LabellerShare, ...]:
+        """The shares of one source (oracle or human), most labels first."""
+        return tuple(sh for sh in self.shares if sh.source == source)
+
+
 class Store(LabellingStore, ExecutionsStore, ModelStore, DecisionsStore):
     """The labelling database. Every method runs as its own committed transaction."""
+
+    # --- seeding and the training labels
+
+    def seed_executions(
+        self, items: Sequence[StoredExecution], *, task: str | None = None
+    ) -> SeedResult:
+        """Store oracle executions (e.g. those a shipped model was trained on) once: an
+        execution id already stored is skipped, so seeding again adds nothing."""
+        for i, item in enumerate(items):
+            if item.execution.source != "oracle":
+                raise InvalidRecordError(
+                    f"seed execution {i} ({item.execution.execution_id!r}) is a "
+                    f"{item.execution.source!r} execution; only oracle labels seed a store"
+                )
+        try:
+            ids = self.add_executions(items, if_exists="skip", task=task)
+        except ConflictError:  # another process seeded at the same moment: its rows count
+            ids = self.add_executions(items, if_exists="skip", task=task)
+        added = [it for it, i in zip(items, ids, strict=True) if i is not None]
+        return SeedResult(
+            added_executions=len(added),
+            added_labels=sum(len(it.execution.steps) for it in added),
+            present_executions=len(items) - len(added),
+        )
+
+    def label_mix(self) -> LabelMix:
+        """Labels of completed and in-progress episodes per labeller and source."""
+
+        def work(s: Session) -> LabelMix:
+            rows = s.execute(
+                select(
+                    Labeller.name,
+                    Label.source,
+                    func.count(Label.id),
+                    func.count(func.distinct(Label.episode_id)),
+                )
+                .join(Episode, Label.episode_id == Episode.id)
+                .join(Labeller, Label.labeller_id == Labeller.id)
+                .where(Episode.status.in_(TRAINING_STATUSES))
+                .group_by(Labeller.name, Label.source)
+            ).all()
+            shares = [LabellerShare(name, src, int(n), int(e)) for name, src, n, e in rows]
+            shares.sort(key=lambda sh: (sh.source != "oracle", -sh.labels, sh.labeller))
+            return LabelMix(tuple(shares))
+
+        return self._run(work, write=False)
 
     # --- statistics
 

@@ -167,15 +167,17 @@ def _simulator(nodes_k3: np.ndarray) -> World:
 
 
 def _candidate(agent: Agent, cloud_n3: np.ndarray, action: int, scores: np.ndarray) -> Candidate:
+    """The chosen demo: the policy's own score (Q for greedy, a backed-up value for lookahead,
+    a stage for the oracle, minus the cost for nn), and Q itself whenever there is a model."""
     scan = agent.scan(cloud_n3)
     plan = agent.transferer.plan(cloud_n3, int(action))
-    score = float(scores[action])
+    q = None if agent.model is None else float(agent.scores(cloud_n3)[action])
     return Candidate(
         rank=1,
         demo_index=int(action),
         demo_key=agent.library.keys[action],
-        score=score,
-        q=score if agent.model is not None and agent.config.kind != "nn" else None,
+        score=float(scores[action]),
+        q=q,
         nn_cost=float(np.asarray(scan.nn_cost_a)[action]),
         trajectory=plan.trajectory,
         failure=plan.failure,

@@ -1,5 +1,6 @@
 """One tab's GUI: name prompt, status, ranked candidate list, actions with hotkeys, progress,
-retrain and model list. Widgets only: every action calls back into the tab controller.
+retrain (the labels it would fit on, how a new model compared) and model list, and a
+confirmation dialog. Widgets only: every action calls back into the tab controller.
 """
 
 from __future__ import annotations
@@ -8,11 +9,17 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import viser
 
 from knotlab.app.web.scene import candidate_label, rank_colour
 from knotlab.app.web.session import Phase, SessionView
+
+if TYPE_CHECKING:
+    from knotlab.app.web.jobs import HeldOutScores, RetrainOutcome
+    from knotlab.app.web.server import ModelRow
+    from knotlab.labeling_db.store import LabelMix
 
 MAX_LISTED = 9  # hotkeys 1-9 select by rank
 _UNSET = object()
@@ -31,6 +38,7 @@ class Actions:
     undo: Callable[[], None]
     retrain: Callable[[], None]
     use_model: Callable[[str | None], None]  # a model version; None: nearest neighbour
+    use_anyway: Callable[[], None]  # activate a new model the retrain kept inactive
     toggle_warped: Callable[[bool], None]
     suggest: Callable[[], None]
     agreement: Callable[[], None]
@@ -48,6 +56,49 @@ def judged_suffix(rank: int, view: SessionView) -> str:
 def _bind(fn: Callable[[int], None], arg: int) -> Callable[[], None]:
     """fn with its argument fixed (a closure per rank: a lambda in a loop would share r)."""
     return lambda: fn(arg)
+
+
+def _score(value: float | None) -> str:
+    """A metric as the tables show it."""
+    return "-" if value is None else f"{value:.3f}"
+
+
+def label_mix_text(mix: LabelMix) -> str:
+    """The labels a retrain would fit on: how many, and the oracle / human mix per labeller."""
+    if not mix.shares:
+        return "**Labels a retrain fits on:** none yet"
+    lines = [f"**Labels a retrain fits on:** {mix.labels} states of {mix.executions} executions"]
+    for source in ("oracle", "human"):
+        shares = mix.of_source(source)
+        who = ", ".join(f"{sh.labeller} {sh.labels}" for sh in shares) or "none yet"
+        lines.append(f"· {source}: {sum(sh.labels for sh in shares)} ({who})")
+    return "  \n".join(lines)
+
+
+def comparison_table(outcome: RetrainOutcome) -> str:
+    """The new model and the active one side by side on the same held-out executions."""
+    verdict = outcome.verdict
+    if verdict is None:
+        return ""
+    new, old = verdict.candidate, verdict.active
+
+    def cell(metric: str, title: str, scores: HeldOutScores) -> str:
+        """A score; the new model's marked where the gate found it worse."""
+        worse = scores is new and title in verdict.worse_on
+        return _score(getattr(scores, metric)) + (" ▼" if worse else "")
+
+    name_old = "nearest neighbour" if old.version is None else old.version[:8]
+    # The old model is still active when the new one was kept out.
+    role = "before" if outcome.activated else "active"
+    rows = [
+        f"| held out: {verdict.n_executions} executions | new {outcome.version[:8]} "
+        f"| {role}: {name_old} |",
+        "|---|---|---|",
+        f"| states | {new.n_states} | {old.n_states} |",
+    ]
+    for metric, title in (("top1", "top-1"), ("top3", "top-3"), ("value_auc", "V-AUC")):
+        rows.append(f"| {title} | {cell(metric, title, new)} | {cell(metric, title, old)} |")
+    return "\n".join(rows)
 
 
 def _call_with(fn: Callable[..., None], *args: object) -> Callable[[object], None]:
@@ -91,9 +142,17 @@ class LabelPanels:
                 self.progress = gui.add_markdown("")
         with tabs.add_tab("Model", icon=icon.BRAIN):
             self.model_status = gui.add_markdown("")
+            self.label_mix = gui.add_markdown("")
             self.retrain_button = gui.add_button("Retrain on all labels", icon=icon.PLAYER_PLAY)
             self.retrain_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
             self.retrain_status = gui.add_markdown("")
+            self.comparison = gui.add_markdown("")
+            self.use_anyway_button = gui.add_button(
+                "Use it anyway",
+                color="orange",
+                visible=False,
+                hint="rank with the new model although it scored worse on held-out labels",
+            )
             self.model_dropdown = gui.add_dropdown("Model", ("nearest neighbour",))
             # A button, not the dropdown's own update: a dropdown echoes its value back when
             # its options change (after a retrain), which must not switch models by itself.
@@ -122,6 +181,7 @@ class LabelPanels:
         self.resample_button.on_click(lambda _e: a.resample())
         self.undo_button.on_click(lambda _e: a.undo())
         self.retrain_button.on_click(lambda _e: a.retrain())
+        self.use_anyway_button.on_click(lambda _e: a.use_anyway())
         self.suggest_button.on_click(lambda _e: a.suggest())
         self.agreement_button.on_click(lambda _e: a.agreement())
         self.open_disagreement.on_click(lambda _e: a.open_disagreement(self.disagreements.value))
@@ -258,16 +318,60 @@ class LabelPanels:
         )
 
     # ------------------------------------------------------------------ models
-    def show_models(self, rows: list[tuple[str, str | None, str]], current: str | None) -> None:
-        """The model list (label, version, description) and the dropdown to switch."""
-        self._model_options = {label: version for label, version, _ in rows}
+    def show_models(self, rows: list[ModelRow]) -> None:
+        """The model table (the active model marked) and the dropdown to switch."""
+        self._model_options = {row.label: row.version for row in rows}
         self.model_dropdown.options = tuple(self._model_options)
-        for label, version, _ in rows:
-            if version == current:
-                self.model_dropdown.value = label  # type: ignore[misc]
-        table = ["| model | made | labels | top-1 | V-AUC |", "|---|---|---|---|---|"]
-        table += [desc for _, _, desc in rows if desc]
+        for row in rows:
+            if row.active:
+                self.model_dropdown.value = row.label  # type: ignore[misc]
+        table = [
+            "| | model | made | labels | top-1 | V-AUC |",
+            "|---|---|---|---|---|---|",
+        ]
+        for row in rows:
+            if row.version is None and not row.active:
+                continue  # nearest neighbour is listed only while it ranks
+            name = "nearest neighbour" if row.version is None else row.version[:8]
+            mark = "**▶ active**" if row.active else ""
+            table.append(
+                f"| {mark} | {name} | {row.made} | {row.labels} | {_score(row.top1)} | "
+                f"{_score(row.value_auc)} |"
+            )
         self.model_table.content = "\n".join(table)
+
+    def show_active(self, text: str) -> None:
+        """Which model ranks every tab's next state."""
+        self.model_status.content = text
+
+    def show_label_mix(self, mix: LabelMix) -> None:
+        """The labels a retrain would fit on, before it starts."""
+        self.label_mix.content = label_mix_text(mix)
+
+    def show_comparison(self, outcome: RetrainOutcome | None, pending: bool) -> None:
+        """The last retrain's comparison, and "Use it anyway" while its model is kept out."""
+        self.comparison.content = "" if outcome is None else comparison_table(outcome)
+        self.use_anyway_button.visible = pending
+
+    def confirm(self, title: str, body: str, yes: str, on_yes: Callable[[], None]) -> None:
+        """Ask before doing something every tab feels; ``on_yes`` runs only on ``yes``."""
+        gui = self.client.gui
+        modal = gui.add_modal(title)
+        with modal:
+            gui.add_markdown(body)
+            yes_button = gui.add_button(yes, color="green")
+            no_button = gui.add_button("Cancel")
+        once = threading.Lock()
+
+        @yes_button.on_click
+        def _(_e: object) -> None:
+            if once.acquire(blocking=False):  # a double click switches once
+                modal.close()
+                on_yes()
+
+        @no_button.on_click
+        def _(_e: object) -> None:
+            modal.close()
 
     def show_retrain(self, running: bool, text: str, fraction: float) -> None:
         """Retrain progress: bar, stage text, button state."""

@@ -7,8 +7,11 @@ makes "switch to the new model" atomic for every tab.
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +25,7 @@ from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.tasks import check_task_of, get_task
 from knotlab.labeling_db.records import StateProvenance
-from knotlab.labeling_db.store import Store
+from knotlab.labeling_db.store import Store, StoredExecution
 
 SCAN_THREADS = 2  # threads of one interactive library scan
 
@@ -68,9 +71,17 @@ def qmodel_from_store(store: Store, version: str | None = None) -> QModel:
 
 
 def save_qmodel_to_store(
-    store: Store, model: QModel, library_hash: str, trained_on: list[str]
+    store: Store,
+    model: QModel,
+    library_hash: str,
+    trained_on: Sequence[str],
+    *,
+    extra_metrics: Mapping[str, Any] | None = None,
 ) -> str:
-    """Store a QModel under its content hash (no-op if already stored); returns the version."""
+    """Store a QModel under its content hash (no-op if already stored); returns the version.
+
+    ``extra_metrics`` are stored beside the model's own (e.g. how it compared on held-out data).
+    """
     version = model.content_hash()
     if any(m.version == version for m in store.list_models()):
         return version
@@ -81,11 +92,125 @@ def save_qmodel_to_store(
         hyperparameters=meta["hyperparameters"],
         feature_spec=meta["feature_spec"],
         params={"bias": meta["bias"], "format_version": meta["version"]},
-        metrics=json_safe(meta["metrics"]),  # a metric with no data is NaN: strict JSON
+        # a metric with no data is NaN: strict JSON
+        metrics=json_safe({**meta["metrics"], **(extra_metrics or {})}),
         library_hash=library_hash,
-        trained_on=trained_on,
+        trained_on=list(trained_on),
     )
     return version
+
+
+# ----------------------------------------------------------------------------- seeding
+
+
+@dataclass(frozen=True)
+class SeedReport:
+    """What seeding the store with the shipped model's training labels did, and how long."""
+
+    path: Path | None  # the labels file; None when this installation does not have it
+    added_executions: int
+    added_labels: int
+    present_executions: int
+    seconds: float
+    note: str = ""  # why nothing was seeded
+
+    def describe(self) -> str:
+        """One line for the start-up log."""
+        if self.note:
+            return self.note
+        return (
+            f"seeded the store with the shipped model's {self.added_executions} oracle-labelled "
+            f"executions ({self.added_labels} labels) from {self.path} in {self.seconds:.1f} s"
+        )
+
+
+def _training_run(model: QModel) -> dict[str, Any]:
+    """The model's recorded training run (its provenance), or {} for a model without one."""
+    run = model.metrics.get("training_run") if isinstance(model.metrics, dict) else None
+    return run if isinstance(run, dict) else {}
+
+
+def shipped_labels_path(model: QModel, model_path: Path) -> Path | None:
+    """The labels file the shipped model was trained on, as its provenance names it (a path
+    relative to the repository it was trained in), if this installation has it."""
+    from knotlab.app.defaults import REPO_DIR
+
+    name = _training_run(model).get("labels")
+    if not isinstance(name, str) or not name:
+        return None
+    named = Path(name)
+    # Not the working directory: the app may be started anywhere.
+    places = [named] if named.is_absolute() else [REPO_DIR / named, model_path.parent / named.name]
+    return next((path for path in places if path.is_file()), None)
+
+
+def shipped_training_executions(model: QModel, items: Sequence[StoredExecution]) -> list[str]:
+    """The execution ids the model was fitted on: its recorded split of the labels file (the
+    executions in file order); [] when the file is not the one it records."""
+    from knotlab.core.selection.model_selection import split_executions
+
+    run = _training_run(model)
+    try:
+        n, fraction, seed = (
+            int(run["n_executions"]),
+            float(run["validation_fraction"]),
+            int(run["split_seed"]),
+        )
+    except (KeyError, TypeError, ValueError):
+        return []
+    if n != len(items):
+        return []
+    ids = [it.execution.execution_id for it in items]
+    if run.get("refit_all"):
+        return ids
+    train_idx, _ = split_executions(n, fraction, seed)
+    return [ids[i] for i in train_idx]
+
+
+def seed_shipped_labels(
+    store: Store, resources: AppResources, shipped: QModel, model_path: Path
+) -> SeedReport:
+    """Import the oracle labels the shipped model was trained on (once: ids already stored are
+    skipped) and store the model itself with them, so a retrain adds human labels to them."""
+    from knotlab.labeling_db.interchange import read_labels
+
+    t0 = time.perf_counter()
+    path = shipped_labels_path(shipped, model_path)
+    if path is None:
+        save_qmodel_to_store(store, shipped, resources.library_hash, [])
+        named = _training_run(shipped).get("labels", "not recorded")
+        return SeedReport(
+            None,
+            0,
+            0,
+            0,
+            time.perf_counter() - t0,
+            f"note: the labels the shipped model was trained on ({named}) are not in this "
+            "installation; a retrain fits on the store's labels only",
+        )
+    items = read_labels(path)
+    foreign = {it.execution.library_hash for it in items} - {None, resources.library_hash}
+    if foreign:
+        return SeedReport(
+            path,
+            0,
+            0,
+            0,
+            time.perf_counter() - t0,
+            f"note: {path} holds labels of library {sorted(foreign)[0]}, not this app's "
+            f"{resources.library_hash}: not seeded",
+        )
+    result = store.seed_executions(items, task=resources.task.name)
+    save_qmodel_to_store(
+        store, shipped, resources.library_hash, shipped_training_executions(shipped, items)
+    )
+    return SeedReport(
+        path,
+        result.added_executions,
+        result.added_labels,
+        result.present_executions,
+        time.perf_counter() - t0,
+    )
 
 
 class AppResources:
@@ -148,6 +273,11 @@ class AppResources:
         """Every loaded model, in the order they were added."""
         with self._lock:
             return list(self._models.values())
+
+    def loaded(self, version: str | None) -> RankingModel | None:
+        """The loaded model ``version`` (None: not loaded, or nearest neighbour)."""
+        with self._lock:
+            return None if version is None else self._models.get(version)
 
     def warm_up(self) -> None:
         """Prepare the library side of the scan (and compile the kernel) before a tab waits."""

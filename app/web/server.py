@@ -9,18 +9,56 @@ import contextlib
 import io
 import logging
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import viser
 
-from knotlab.app.web.jobs import RetrainJob, RetrainReport
-from knotlab.app.web.resources import AppResources, qmodel_from_store
+from knotlab.app.web.jobs import ReportKind, RetrainJob, RetrainOutcome, RetrainReport
+from knotlab.app.web.resources import (
+    AppResources,
+    RankingModel,
+    qmodel_from_store,
+    save_qmodel_to_store,
+    seed_shipped_labels,
+)
 from knotlab.app.web.sim_pool import SimPool
-from knotlab.app.web.tab import LabelTab
-from knotlab.labeling_db.store import Store
+from knotlab.app.web.tab import LabelTab, NotifyColour
+from knotlab.labeling_db.store import LabelMix, Store
 
 log = logging.getLogger(__name__)
+REASON_CHARS = 200  # the store keeps an activation's reason in 200 characters
+
+
+@dataclass(frozen=True)
+class ModelRow:
+    """One model as the Model tab lists it."""
+
+    label: str  # the dropdown's name of it
+    version: str | None  # None: nearest neighbour
+    active: bool  # every tab's next state is ranked by it
+    made: str
+    labels: str  # labels it was trained on
+    top1: float | None  # validation top-1 (a retrained one: on the held-out executions)
+    value_auc: float | None
+
+
+def _short(version: str | None) -> str:
+    """A model as the one-line texts name it."""
+    return "nearest neighbour" if version is None else version[:8]
+
+
+def _finish_note(kind: ReportKind, *, refused: bool) -> tuple[str, NotifyColour]:
+    """The title and colour of the notification that a retrain ended."""
+    if kind is ReportKind.ERROR:
+        return "retrain failed", "red"
+    return ("new model kept inactive", "yellow") if refused else ("new model active", "green")
+
+
+def _clip(reason: str) -> str:
+    """A reason the store can keep."""
+    return reason if len(reason) <= REASON_CHARS else reason[: REASON_CHARS - 3] + "..."
 
 
 class LabelApp:
@@ -47,6 +85,8 @@ class LabelApp:
         self.sim_pool = SimPool(str(library_path), sim_workers) if sim_workers > 0 else None
         self._retrain_text = ""
         self._retrain_fraction = 0.0
+        self.last_outcome: RetrainOutcome | None = None  # the last finished retrain
+        self.pending: RetrainOutcome | None = None  # a new model kept inactive: "use it anyway"
         self._tabs: dict[int, LabelTab] = {}
         self.suggested: list[int] = []  # start state ids, most informative first
         self.suggest_text = ""
@@ -123,36 +163,83 @@ class LabelApp:
         raise InvalidInputError(f"{start!r} is not a training start of this app's level")
 
     # ------------------------------------------------------------------ models
-    def model_rows(self) -> list[tuple[str, str | None, str]]:
-        """(dropdown label, version, table row) for every model the tabs can rank with."""
+    def model_rows(self) -> list[ModelRow]:
+        """Every model the tabs can rank with (nearest neighbour first), the active one marked."""
         stored = {m.version: m for m in self.store.list_models()}
-        rows: list[tuple[str, str | None, str]] = [("nearest neighbour", None, "")]
+        current = self.resources.current.version
+        rows = [ModelRow("nearest neighbour", None, current is None, "-", "-", None, None)]
         for ranking in self.resources.models():
             info = stored.get(ranking.version or "")
             m = ranking.model.metrics if ranking.model is not None else {}
             run = m.get("training_run", {}) if isinstance(m, dict) else {}
             val = run.get("validation", {}) if isinstance(run, dict) else {}
-            if info is not None:
-                when = info.created_at.strftime("%m-%d %H:%M")
+            held = (info.metrics.get("held_out") if info is not None else None) or {}
+            if isinstance(held.get("candidate"), dict):  # the retrain's own held-out scores
+                val = held["candidate"]
+            if info is not None and info.n_training_labels:
                 n = str(info.n_training_labels)
-                val = {**val, **{k[4:]: v for k, v in info.metrics.items() if k.startswith("val_")}}
             else:  # a model file (the shipped default): its size is in its training run
-                when, n = "file", str(m.get("n_states", "?")) + " states"
-            top1 = val.get("top1")
-            auc = val.get("value_auc")
-            row = (
-                f"| {(ranking.version or '')[:8]} | {when} | {n} | "
-                f"{'-' if top1 is None else f'{top1:.3f}'} | "
-                f"{'-' if auc is None else f'{auc:.3f}'} |"
+                n = str(m.get("n_states", "?")) + " states"
+            # A model file (the shipped default) is stored too, but was made elsewhere.
+            made = (
+                info.created_at.strftime("%m-%d %H:%M")
+                if info is not None and ranking.source == "store"
+                else "file"
             )
-            rows.append((ranking.label, ranking.version, row))
+            top1, auc = val.get("top1"), val.get("value_auc")
+            rows.append(
+                ModelRow(
+                    ranking.label,
+                    ranking.version,
+                    ranking.version == current,
+                    made,
+                    n,
+                    None if top1 is None else float(top1),
+                    None if auc is None else float(auc),
+                )
+            )
         return rows
 
-    def use_model(self, version: str | None) -> None:
-        """Rank every tab's next state with ``version`` (None: nearest neighbour)."""
-        self.resources.use(version)
+    def active_text(self) -> str:
+        """What ranks every tab's next state, since when and why (the Model tab's first line)."""
+        current = self.resources.current
+        record = self.store.active_model()
+        line = f"**Next states are ranked by** {current.label}"
+        if record is not None and record.version == current.version:
+            when = record.activated_at.astimezone().strftime("%m-%d %H:%M")
+            line += f"  \nactive since {when}: {record.reason}"
+        return line
+
+    def use_model(self, version: str | None, *, reason: str) -> RankingModel:
+        """Make ``version`` (None: nearest neighbour) the active model for every tab's next
+        state, and persist it, so a restarted app ranks with it too."""
+        from knotlab.core.errors import InvalidInputError
+
+        ranking = self.resources.loaded(version)
+        if version is not None and ranking is None:
+            raise InvalidInputError(f"no model {version!r} loaded in the app")
+        if ranking is not None and ranking.model is not None:  # a model file: stored first
+            save_qmodel_to_store(self.store, ranking.model, self.resources.library_hash, [])
+        self.store.set_active_model(version, reason=_clip(reason))
+        chosen = self.resources.use(version)
+        if self.pending is not None and self.pending.version == version:
+            self.pending = None
+            self._retrain_text = f"model {_short(version)} activated: {reason}"
         for tab in self.tabs():
             tab.refresh_models()
+            tab.show_retrain()
+        return chosen
+
+    # ------------------------------------------------------------------ labels
+    def label_mix(self) -> LabelMix:
+        """The labels a retrain would fit on, per source and labeller."""
+        return self.store.label_mix()
+
+    def labels_changed(self) -> None:
+        """Labels were stored or removed: every tab's retrain panel shows the new mix."""
+        mix = self.label_mix()
+        for tab in self.tabs():
+            tab.show_label_mix(mix)
 
     # ------------------------------------------------------------------ retraining
     def retrain_state(self) -> tuple[bool, str, float]:
@@ -169,33 +256,48 @@ class LabelApp:
 
     def _on_retrain_report(self, report: RetrainReport) -> None:
         self._retrain_text, self._retrain_fraction = report.text, report.fraction
-        if report.kind == "done" and report.version is not None:
+        if report.kind is ReportKind.DONE and report.outcome is not None:
             try:
-                model = qmodel_from_store(self.store, report.version)
-                self.resources.add_model(model, "store")
-                self.resources.use(report.version)
+                self._take(report.outcome)
             except Exception as exc:
-                report = RetrainReport("error", f"cannot load the new model: {exc}")
-                self._retrain_text = report.text
-        metrics = report.metrics
-        if report.kind == "done":
-            top1 = metrics.get("val_top1")
-            summary = (
-                f"{metrics.get('n_states')} states; validation top-1 "
-                f"{'n/a' if top1 is None else f'{top1:.3f}'}; next states are ranked by it"
-            )
-            self._retrain_text = f"model {report.version}: {summary}"
-        elif report.kind == "error":
-            self._retrain_text = f"retrain failed (the old model stays): {report.text}"
+                report = RetrainReport(ReportKind.ERROR, f"cannot load the new model: {exc}")
+        if report.kind is ReportKind.ERROR:
+            self._retrain_text = f"retrain failed (the active model stays): {report.text}"
+        final = report.kind is not ReportKind.STAGE
+        title, colour = _finish_note(report.kind, refused=self.pending is not None)
         for tab in self.tabs():
             tab.show_retrain()
-            if report.kind in ("done", "error"):
+            if final:
                 tab.refresh_models()
-                tab.notify(
-                    "retrain finished" if report.kind == "done" else "retrain failed",
-                    self._retrain_text,
-                    "green" if report.kind == "done" else "red",
+                tab.show_label_mix(self.label_mix())
+                tab.notify(title, self._retrain_text, colour)
+
+    def _take(self, outcome: RetrainOutcome) -> None:
+        """Load a finished retrain's model; rank with it only if the retrain activated it."""
+        try:
+            self.resources.add_model(qmodel_from_store(self.store, outcome.version), "store")
+        except Exception:
+            if outcome.activated:  # the store must not name a model this app cannot load
+                self.store.set_active_model(
+                    self.resources.current.version, reason="the new model could not be loaded"
                 )
+            raise
+        self.last_outcome = outcome
+        new = f"**{_short(outcome.version)}**"
+        if outcome.activated:
+            self.resources.use(outcome.version)
+            self.pending = None
+            fitted = outcome.n_executions - len(outcome.held_out)
+            self._retrain_text = (
+                f"Model {new} is now active: {outcome.why}. It was fitted on {fitted} "
+                f"executions; {len(outcome.held_out)} were held out."
+            )
+        else:
+            self.pending = outcome
+            self._retrain_text = (
+                f"Model {new} is stored but **not active**: {outcome.why}. "
+                f"{self.resources.current.label} keeps ranking."
+            )
 
     def _broadcast_retrain(self) -> None:
         for tab in self.tabs():
@@ -263,43 +365,78 @@ class LabelApp:
 def load_models(
     app_resources: AppResources, store: Store, model_arg: str | None, default_model: Path
 ) -> str:
-    """Load the models the app can rank with and pick the current one; returns a description.
+    """Seed the store with the shipped model's training labels, load the models the app can
+    rank with and pick the active one; returns a description.
 
-    ``model_arg`` is a model file or a stored version; without it the newest stored model is used,
-    else the shipped default model, else nearest-neighbour ranking.
+    ``model_arg`` (a model file or a stored version) becomes the active model. Without it the
+    store's active model ranks; a store that never had one starts with the shipped default
+    model, else the newest stored one, else nearest neighbour. The pick is persisted in the
+    store, so a restarted app ranks with the same model, never merely the newest.
     """
     from knotlab.core.errors import InvalidInputError
     from knotlab.core.selection.qmodel import QModel
 
     notes = []
+    shipped: RankingModel | None = None
+    if default_model.exists():
+        try:
+            shipped = app_resources.add_model(QModel.load(default_model), str(default_model))
+        except Exception as exc:
+            notes.append(f"{default_model} skipped: {exc}")
+    if shipped is not None and shipped.model is not None:
+        try:
+            report = seed_shipped_labels(store, app_resources, shipped.model, default_model)
+            if report.note or report.added_executions:
+                print(report.describe(), flush=True)
+        except Exception as exc:  # labels are an aid to retraining, not needed to label
+            notes.append(f"the shipped model's training labels were not seeded: {exc}")
     stored_versions = [m.version for m in store.list_models()]
     for version in stored_versions:
+        if app_resources.loaded(version) is not None:
+            continue  # the shipped model, stored with its labels, keeps its file's name
         try:
             app_resources.add_model(qmodel_from_store(store, version), "store")
         except Exception as exc:  # a model of another library stays in the store, unused
             notes.append(f"stored model {version} skipped: {exc}")
-    if default_model.exists():
-        try:
-            app_resources.add_model(QModel.load(default_model), str(default_model))
-        except Exception as exc:
-            notes.append(f"{default_model} skipped: {exc}")
+    active = store.active_model()
     if model_arg is not None:
         path = Path(model_arg)
         if path.exists():
             chosen = app_resources.add_model(QModel.load(path), str(path))
-        elif model_arg in {r.version for r in app_resources.models()}:
-            chosen = app_resources.use(model_arg)
+        elif (found := app_resources.loaded(model_arg)) is not None:
+            chosen = found
         else:
             raise InvalidInputError(
                 f"--model {model_arg!r} is neither a model file nor a stored model version "
                 f"(stored: {', '.join(stored_versions) or 'none'})"
             )
-        app_resources.use(chosen.version)
+        _persist(store, app_resources, chosen, f"--model {model_arg}")
+    elif active is not None and (active.version is None or app_resources.loaded(active.version)):
+        app_resources.use(active.version)
     else:
         loaded = app_resources.models()
         newest_stored = [r for r in loaded if r.source == "store"]
-        pick = newest_stored[-1] if newest_stored else (loaded[-1] if loaded else None)
+        pick = shipped or (newest_stored[-1] if newest_stored else None)
         app_resources.use(None if pick is None else pick.version)
+        if active is None:  # a new store: this pick is its first active model
+            why = "the shipped default model" if pick is shipped else "the newest stored model"
+            _persist(store, app_resources, pick, why if pick is not None else "no model fits")
+        else:  # e.g. another --library this run: the store keeps its choice for later
+            notes.append(
+                f"the active model {_short(active.version)} does not fit this library; "
+                f"ranking with {app_resources.current.label} for now"
+            )
     for note in notes:
         log.warning(note)
     return app_resources.current.label
+
+
+def _persist(
+    store: Store, resources: AppResources, ranking: RankingModel | None, reason: str
+) -> None:
+    """Rank with ``ranking`` (None: nearest neighbour) and record it as the active model."""
+    version = None if ranking is None else ranking.version
+    if ranking is not None and ranking.model is not None:
+        save_qmodel_to_store(store, ranking.model, resources.library_hash, [])
+    store.set_active_model(version, reason=_clip(reason))
+    resources.use(version)

@@ -26,6 +26,7 @@ from knotlab.core.world.frames import FrameRecorder
 
 if TYPE_CHECKING:
     from knotlab.app.web.server import LabelApp
+    from knotlab.labeling_db.store import LabelMix
 
 log = logging.getLogger(__name__)
 NotifyColour = Literal["blue", "green", "yellow", "red"]
@@ -50,13 +51,14 @@ class LabelTab:
             Actions(
                 select=self.select,
                 try_=self.try_selected,
-                accept=lambda: self._act(lambda s: s.accept()),
+                accept=lambda: self._act(lambda s: s.accept(), labels=True),
                 reject=lambda: self._act(lambda s: s.reject()),
-                dead_end=lambda: self._act(lambda s: s.dead_end()),
-                resample=lambda: self._act(lambda s: s.resample(), look=True),
-                undo=lambda: self._act(lambda s: s.undo(), look=True),
+                dead_end=lambda: self._act(lambda s: s.dead_end(), labels=True),
+                resample=lambda: self._act(lambda s: s.resample(), look=True, labels=True),
+                undo=lambda: self._act(lambda s: s.undo(), look=True, labels=True),
                 retrain=self.retrain,
                 use_model=self.use_model,
+                use_anyway=self.use_anyway,
                 toggle_warped=lambda _on: self._redraw_warped(),
                 suggest=self.suggest,
                 agreement=self.agreement,
@@ -82,6 +84,7 @@ class LabelTab:
             )
         self.refresh_models()
         self.show_retrain()
+        self.show_label_mix(app.label_mix())
 
     # ------------------------------------------------------------------ start
     def open(self) -> None:
@@ -169,7 +172,10 @@ class LabelTab:
         *,
         look: bool = False,
         candidates_only: bool = False,
+        labels: bool = False,
     ) -> None:
+        """Run a protocol action and redraw; ``labels``: it may store or remove labels (an
+        abandoned rope's labels leave the training set), so every retrain panel is updated."""
         session = self.session
         if session is None:
             return
@@ -183,6 +189,8 @@ class LabelTab:
             self._notify("error", f"{type(exc).__name__}: {exc}", "red")
             log.exception("action failed")
             return
+        if labels:
+            self.app.labels_changed()
         self.drawer.stop_animation()
         if candidates_only:
             view = session.view()
@@ -297,12 +305,67 @@ class LabelTab:
         self.panels.suggest_button.disabled = running
 
     def use_model(self, version: str | None) -> None:
-        """Rank this and every tab's next states with model ``version``."""
-        self.app.use_model(version)
+        """Rank every tab's next states with model ``version``, once the labeller confirms."""
+        current = self.app.resources.current
+        if version == current.version:
+            self.notify("already active", f"next states are ranked by {current.label}")
+            return
+        row = next((r for r in self.app.model_rows() if r.version == version), None)
+        label = "nearest neighbour" if row is None or version is None else row.label
+        score = None if row is None else row.top1
+        held = "" if score is None else f"  \nIts validation top-1: {score:.3f}."
+        self.panels.confirm(
+            "Switch the model?",
+            f"Every tab's next state will be ranked by **{label}** instead of "
+            f"**{current.label}**.{held}",
+            "Yes, rank with it",
+            lambda: self._switch(version, f"switched to it by {self._who()}"),
+        )
+
+    def use_anyway(self) -> None:
+        """Activate the new model a retrain kept inactive, once the labeller confirms."""
+        pending = self.app.pending
+        if pending is None:
+            self.notify("nothing to use", "no new model is waiting", "yellow")
+            return
+        worse = ""
+        if pending.verdict is not None:
+            new, old = pending.verdict.candidate, pending.verdict.active
+            worse = (
+                f"  \nOn the same {new.n_states} held-out states its top-1 is "
+                f"{new.top1:.3f}, the active model's {old.top1:.3f}."
+            )
+        self.panels.confirm(
+            "Use the new model anyway?",
+            f"Model **{pending.version[:8]}** is not active: {pending.why}."
+            f"{worse}  \nEvery tab's next state will be ranked by it.",
+            "Yes, rank with it",
+            lambda: self._switch(pending.version, f"used anyway by {self._who()}"),
+        )
+
+    def _switch(self, version: str | None, reason: str) -> None:
+        try:
+            chosen = self.app.use_model(version, reason=reason)
+        except Exception as exc:
+            self._notify("cannot switch", f"{type(exc).__name__}: {exc}", "red")
+            log.exception("switching models failed")
+            return
+        self.notify("model switched", f"next states are ranked by {chosen.label}", "green")
+
+    def _who(self) -> str:
+        """Who is acting in this tab (for the store's record of model switches)."""
+        return self.session.labeller if self.session is not None else "a labeller"
 
     def refresh_models(self) -> None:
-        """Redraw the model list and dropdown."""
-        self.panels.show_models(self.app.model_rows(), self.app.resources.current.version)
+        """Redraw the active model, the model list, and the last retrain's comparison."""
+        self.panels.show_active(self.app.active_text())
+        self.panels.show_models(self.app.model_rows())
+        self.panels.show_comparison(self.app.last_outcome, self.app.pending is not None)
+
+    def show_label_mix(self, mix: LabelMix) -> None:
+        """Redraw the labels a retrain would fit on (not in a tab that has gone)."""
+        if not self.closed:
+            self.panels.show_label_mix(mix)
 
     def show_retrain(self) -> None:
         """Redraw the retrain progress."""

@@ -105,10 +105,22 @@ def db_url(tmp_path_factory) -> str:
     return f"sqlite:///{tmp_path_factory.mktemp('appdb') / 'knotlab.db'}"
 
 
+SEED_EXECUTIONS = 12  # of the shipped labels, seeded into each module's store
+
+
 @pytest.fixture(scope="module")
-def app(db_url):
-    """The app under test, stopped at the end of the module."""
-    a = start_app(db_url)
+def app(db_url, tmp_path_factory, project_root):
+    """The app under test, stopped at the end of the module. Its store is seeded with the last
+    few executions of the shipped labels, not all 300: a retrain in a test then takes seconds."""
+    from knotlab.app.web import resources
+
+    shipped = project_root / "results" / "labels_oracle_main.jsonl"
+    lines = shipped.read_text(encoding="utf-8").splitlines(keepends=True)
+    seed = tmp_path_factory.mktemp("seed") / "labels_oracle_main.jsonl"
+    seed.write_text("".join(lines[:1] + lines[-SEED_EXECUTIONS:]), encoding="utf-8")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(resources, "shipped_labels_path", lambda _model, _path: seed)
+        a = start_app(db_url)
     yield a
     a.stop()
 
