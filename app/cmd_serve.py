@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     workers = args.workers or default_workers()
     pool = DecisionPool(config, workers)
     try:
-        print(f"starting {workers} decision workers...", flush=True)
+        print(f"starting {workers} decision worker{'s' if workers > 1 else ''}...", flush=True)
         pool.warm()
         app = create_app(pool, info, token=token)
         server = uvicorn.Server(

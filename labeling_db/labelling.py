@@ -343,7 +343,11 @@ class LabellingStore(StoreBase):
             label = _label_row(ep, sid, step, ep.source, labelled_at or utcnow())
             s.add(label)
             if resume is not None:
-                ep.meta = {**(ep.meta or {}), "resume_nodes": resume}
+                # The exact rope each later state was placed from, by step: undo returns to it,
+                # so the state (and its ranking) after an undo is the one that was shown.
+                sources = dict((ep.meta or {}).get("state_sources", {}))
+                sources[str(step.step_index + 1)] = resume
+                ep.meta = {**(ep.meta or {}), "resume_nodes": resume, "state_sources": sources}
             with self._conflicts(f"episode {episode_id} already has step {step.step_index}"):
                 s.flush()
             if finish:
@@ -412,7 +416,10 @@ class LabellingStore(StoreBase):
             info = _label_info(label, ep, labeller)
             state_id, own_state = label.state_id, label.state_id != ep.start_state_id
             undone = s.get(RopeState, state_id)
-            if undone is not None and undone.rope_nodes is not None:  # resume before that step
+            source = (ep.meta or {}).get("state_sources", {}).get(str(label.step_index))
+            if source is not None:  # resume exactly where that step's state was placed from
+                ep.meta = {**(ep.meta or {}), "resume_nodes": source}
+            elif undone is not None and undone.rope_nodes is not None:  # older episodes
                 nodes = _state_record(undone).rope_nodes_k3
                 ep.meta = {**(ep.meta or {}), "resume_nodes": _resume_nodes(nodes)}
             s.delete(label)

@@ -422,6 +422,10 @@ class LabelSession:
                 self._claim_next()
                 self.message = f"episode done ({done}); next start loaded"
             else:
+                # The next state is placed from the rope nodes just stored (at rest, as a resume
+                # or an undo places it), so every state shown can be restored bit for bit and the
+                # ranking stored with its label is the one the expert saw.
+                self.world.reset(stored_nodes(result.outcome.nodes_after_k3))
                 self._show_state()
                 self.message = f"accepted {result.demo_key}; step {self.step_index + 1}"
             return self.view()
@@ -517,6 +521,11 @@ class LabelSession:
                 self._release_if_unlabelled()
             if self._own_world and was is not Phase.TRYING:
                 self.world.close()
+
+
+def stored_nodes(nodes_k3: np.ndarray) -> np.ndarray:
+    """Rope nodes exactly as the store gives them back (its JSON round trip of float64)."""
+    return np.asarray(np.asarray(nodes_k3, dtype=float).tolist(), dtype=float)
 
 
 def _features(ranking: RankingModel, cloud_n3: np.ndarray):

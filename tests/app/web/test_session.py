@@ -93,7 +93,12 @@ def test_accept_stores_state_choice_ranking_model_and_resume_point(store, resour
     assert list(step.candidates) == shown and step.model_version == resources.current.version
     episode, resume = store.open_episode("ann")
     assert episode.n_labels == 1 and s.view().step_index == 1
-    assert np.allclose(resume, s.view().rope_nodes_k3, atol=1e-6)
+    # the state shown is the rope placed from the stored resume point, exactly
+    from knotlab.core.world.sim import RopeWorld
+
+    with RopeWorld() as world:
+        world.reset(resume)
+        assert np.array_equal(world.rope_nodes(), s.view().rope_nodes_k3)
 
 
 def test_reject_restores_the_state_exactly_and_selects_the_next(store, resources):
@@ -281,3 +286,32 @@ def test_a_dead_end_reads_as_a_dead_end_not_a_reject(store, resources):
     other = next(iter(view.rejected - view.dead_ends), None)
     if other is not None:
         assert judged_suffix(other, view) == " · rejected"
+
+
+def _ranking(s: LabelSession) -> list[tuple[str, float, float]]:
+    """The ranking shown: demo, score and registration cost of every candidate, exactly."""
+    return [(c.ranked.demo_key, c.ranked.score, c.ranked.nn_cost) for c in s.candidates]
+
+
+def test_undo_and_resume_reproduce_the_ranking_shown_bit_for_bit(tmp_path, store, resources):
+    s = _session(store, resources, "uma")
+    _accept_something(s)  # step 1's state: placed from the stored rope
+    shown, nodes = _ranking(s), s.view().rope_nodes_k3.copy()
+    assert shown
+    _accept_something(s)
+    s.undo()  # back to step 1: the same state, the same ranking, to the last bit
+    assert s.view().step_index == 1
+    assert np.array_equal(s.view().rope_nodes_k3, nodes)
+    assert _ranking(s) == shown
+    s.close()
+    # a restart: a new session of the same labeller resumes that state, ranked identically
+    again = _session(store, resources, "uma")
+    assert again.view().step_index == 1
+    assert np.array_equal(again.view().rope_nodes_k3, nodes)
+    assert _ranking(again) == shown
+    # and the label made there stores the ranking shown
+    _accept_something(again)
+    (mine,) = [e for e in store.training_executions(include_unfinished=True) if e.labeller == "uma"]
+    step = mine.steps[1]
+    assert list(step.candidates) == [k for k, _, _ in shown]
+    assert np.allclose(step.candidate_scores_c, [v for _, v, _ in shown], rtol=1e-6)
