@@ -280,11 +280,17 @@ def _plot(curve: dict, path: Path) -> None:
     rounds = sorted((k for k in pts if k.startswith("round")), key=lambda k: int(k[5:]))
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, key, label in (
-        (axes[0], "validation_greedy_success", "greedy success, held-out starts"),
+        (axes[0], "validation_greedy_success", "greedy success, 60 held-out starts (Wilson 95 %)"),
         (axes[1], "validation_top1", "top-1 agreement with the oracle, held-out states"),
     ):
         xs = [pts[k]["train_states"] for k in rounds]
         ax.plot(xs, [pts[k][key] for k in rounds], "o-", label="policy-state rounds")
+        if key == "validation_greedy_success":  # 60 episodes: show how wide that is
+            for name, colour in [(k, "C0") for k in rounds] + [("control", "C3")]:
+                if name in pts:
+                    p = pts[name]
+                    lo, hi = _wilson(p[key], p["validation_starts"])
+                    ax.plot([p["train_states"]] * 2, [lo, hi], color=colour, alpha=0.4, lw=4)
         for k, x in zip(rounds, xs, strict=True):
             ax.annotate(k, (x, pts[k][key]), textcoords="offset points", xytext=(4, 4))
         if "control" in pts:
@@ -301,6 +307,13 @@ def _plot(curve: dict, path: Path) -> None:
         ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def _wilson(rate: float, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson 95 % interval of a success rate over n trials."""
+    centre = (rate + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(rate * (1 - rate) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
 
 
 def _table(curve: dict) -> None:
