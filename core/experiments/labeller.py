@@ -24,6 +24,7 @@ recorded, the first step's rope nodes); a stored task id with another rope is re
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -218,19 +219,12 @@ def oracle_from(
     dead = list(search.dead_ends)
     if steps is None and exhaustive:
         dead.append(DeadEndState(cloud, nodes))
-    numbered = [
-        LabelledStep(
-            i,
-            s.cloud_n3,
-            s.chosen_demo,
-            s.outcome,
-            s.rope_nodes_k3,
-            s.candidates,
-            s.candidate_scores_c,
-        )
-        for i, s in enumerate(steps or [])
-    ]
-    return numbered, dead, search.sims, search.exhausted
+    return list(_numbered(steps or [])), dead, search.sims, search.exhausted
+
+
+def _numbered(steps: Sequence[LabelledStep]) -> tuple[LabelledStep, ...]:
+    """The search's steps with their indices in the execution (0, 1, ...)."""
+    return tuple(dataclasses.replace(s, step_index=i) for i, s in enumerate(steps))
 
 
 def label_task(
@@ -251,19 +245,7 @@ def label_task(
     search = _Search(world, agent, params)
     max_steps = agent.task.step_limit if params.max_steps is None else params.max_steps
     steps, _ = search.solve(snapshot, cloud, nodes, stage, max_steps)
-    steps = steps or []
-    labelled = tuple(
-        LabelledStep(
-            i,
-            s.cloud_n3,
-            s.chosen_demo,
-            s.outcome,
-            s.rope_nodes_k3,
-            s.candidates,
-            s.candidate_scores_c,
-        )
-        for i, s in enumerate(steps)
-    )
+    labelled = _numbered(steps or [])
     execution = LabelledExecution(
         execution_id=oracle_execution_id(task_id),
         source="oracle",
