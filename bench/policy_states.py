@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import RopeTask, generate_tasks  # noqa: E402
+from knotlab.core.experiments.bench.report import wilson_interval  # noqa: E402
 from knotlab.core.experiments.labeller import oracle_label_tasks  # noqa: E402
 from knotlab.core.experiments.policy_states import (  # noqa: E402
     REACHED_BY,
@@ -289,7 +290,8 @@ def _plot(curve: dict, path: Path) -> None:
             for name, colour in [(k, "C0") for k in rounds] + [("control", "C3")]:
                 if name in pts:
                     p = pts[name]
-                    lo, hi = _wilson(p[key], p["validation_starts"])
+                    n = p["validation_starts"]
+                    lo, hi = wilson_interval(round(p[key] * n), n)
                     ax.plot([p["train_states"]] * 2, [lo, hi], color=colour, alpha=0.4, lw=4)
         for k, x in zip(rounds, xs, strict=True):
             ax.annotate(k, (x, pts[k][key]), textcoords="offset points", xytext=(4, 4))
@@ -307,13 +309,6 @@ def _plot(curve: dict, path: Path) -> None:
         ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-
-
-def _wilson(rate: float, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The Wilson 95 % interval of a success rate over n trials."""
-    centre = (rate + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(rate * (1 - rate) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
 
 
 def _table(curve: dict) -> None:
