@@ -53,3 +53,20 @@ def test_sharing_ledger_books_first_own_and_shared_simulations(project_root) -> 
     apply(_world(0.0), None, cloud, 3)  # a new task forgets: first
     assert ledger.calls["la2x5"] == {"first": 2, "own": 1, "shared": 0}
     assert ledger.calls["oracle"] == {"first": 2, "own": 0, "shared": 1}
+
+
+def test_policy_states_label_files_read_back_and_append_without_a_second_header(
+    project_root, tmp_path
+) -> None:
+    from knotlab.labeling_db.interchange import read_labels
+
+    policy_states = load_bench_module(project_root, "policy_states")
+    executions = [
+        item.execution for item in read_labels(project_root / "results/labels_oracle_main.jsonl")
+    ][:3]
+    path = tmp_path / "round1.jsonl"
+    policy_states._append(path, executions[:2])  # a new file: header, then the executions
+    policy_states._append(path, executions[2:])  # resumed: appended, no second header
+    back = policy_states._read(path)  # the labels format's reader accepts what was written
+    assert [e.execution_id for e in back] == [e.execution_id for e in executions]
+    assert sum('"format"' in line for line in path.read_text().splitlines()) == 1
