@@ -353,8 +353,16 @@ class LabelPanels:
         self.comparison.content = "" if outcome is None else comparison_table(outcome)
         self.use_anyway_button.visible = pending
 
-    def confirm(self, title: str, body: str, yes: str, on_yes: Callable[[], None]) -> None:
-        """Ask before doing something every tab feels; ``on_yes`` runs only on ``yes``."""
+    def confirm(
+        self,
+        title: str,
+        body: str,
+        yes: str,
+        on_yes: Callable[[], None],
+        on_no: Callable[[], None] | None = None,
+    ) -> None:
+        """Ask before doing something every tab feels; ``on_yes`` runs only on ``yes``,
+        ``on_no`` (if given) on Cancel."""
         gui = self.client.gui
         modal = gui.add_modal(title)
         with modal:
@@ -371,7 +379,10 @@ class LabelPanels:
 
         @no_button.on_click
         def _(_e: object) -> None:
-            modal.close()
+            if once.acquire(blocking=False):
+                modal.close()
+                if on_no is not None:
+                    on_no()
 
     def show_retrain(self, running: bool, text: str, fraction: float) -> None:
         """Retrain progress: bar, stage text, button state."""

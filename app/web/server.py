@@ -23,6 +23,7 @@ from knotlab.app.web.resources import (
     save_qmodel_to_store,
     seed_shipped_labels,
 )
+from knotlab.app.web.session import Phase
 from knotlab.app.web.sim_pool import SimPool
 from knotlab.app.web.tab import LabelTab, NotifyColour
 from knotlab.labeling_db.store import LabelMix, Store
@@ -113,6 +114,20 @@ class LabelApp:
         """The connected tabs."""
         with self._tabs_lock:
             return list(self._tabs.values())
+
+    def labelling_tab(self, labeller: str, *, besides: LabelTab) -> LabelTab | None:
+        """Another open tab in which ``labeller`` is labelling now (None: there is none)."""
+        for tab in self.tabs():
+            session = tab.session
+            if (
+                tab is not besides
+                and not tab.closed
+                and session is not None
+                and session.labeller == labeller
+                and session.phase is not Phase.CLOSED
+            ):
+                return tab
+        return None
 
     def tab(self, client_id: int) -> LabelTab | None:
         """The tab of one client id."""

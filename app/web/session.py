@@ -512,6 +512,16 @@ class LabelSession:
         if self.episode is not None and self.store.episode(self.episode.episode_id).n_labels == 0:
             self.store.finish_episode(self.episode.episode_id, status="abandoned")
 
+    def detach(self) -> SessionView:
+        """Another tab of this labeller took the episode over: stop here, keep the episode open
+        (nothing is released or abandoned), say so."""
+        with self._lock:
+            self.phase = Phase.CLOSED
+            self.message = "this episode was taken over in another tab; reload to label here"
+            if self._own_world:
+                self.world.close()
+            return self.view()
+
     def close(self) -> None:
         """The tab went away: drop any try; release the start if nothing was accepted on it."""
         with self._lock:

@@ -6,6 +6,7 @@ action the protocol does not allow right now becomes a notification, never a cra
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -23,6 +24,7 @@ from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import SceneDrawer
 from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
 from knotlab.core.world.frames import FrameRecorder
+from knotlab.labeling_db.errors import ConflictError
 
 if TYPE_CHECKING:
     from knotlab.app.web.server import LabelApp
@@ -102,7 +104,38 @@ class LabelTab:
             self.panels.ask_name(self.begin)
 
     def begin(self, name: str) -> None:
-        """Start (or resume) this labeller's session."""
+        """Start (or resume) this labeller's session; when it is open in another tab, offer to
+        take it over (one labeller labels in one tab at a time)."""
+        other = self.app.labelling_tab(name.strip(), besides=self)
+        if other is not None:
+            self.panels.confirm(
+                "Your episode is open in another tab",
+                f"**{name.strip()}** is labelling in another tab or browser. Take the episode "
+                "over here? That tab stops labelling; nothing accepted is lost.",
+                "Take it over",
+                lambda: self._take_over(other, name),
+                on_no=lambda: self.panels.ask_name(self.begin),
+            )
+            return
+        self._begin(name)
+
+    def _take_over(self, other: LabelTab, name: str) -> None:
+        other.taken_over()
+        self._begin(name)
+
+    def taken_over(self) -> None:
+        """Another tab took this labeller's episode over: stop labelling here and say so."""
+        session, self.session = self.session, None
+        if session is None:
+            return
+        self.drawer.stop_animation()
+        self.panels.show(session.detach())
+        self._notify(
+            "taken over", "your episode continues in another tab; reload here to label", "yellow"
+        )
+
+    def _begin(self, name: str) -> None:
+        """Start (or resume) this labeller's session now."""
         try:
             self.client.local_storage.set_item(NAME_KEY, name.strip())
             pool = self.app.sim_pool
@@ -184,6 +217,17 @@ class LabelTab:
             action(session)
         except SessionError as exc:
             self._notify("not now", str(exc), "yellow")
+            return
+        except ConflictError as exc:  # the episode changed elsewhere: a sentence, then resync
+            log.info("client %s: %s", self.client.client_id, exc)
+            self._notify(
+                "this episode changed elsewhere",
+                "it was labelled or ended in another tab; showing its current state",
+                "yellow",
+            )
+            with contextlib.suppress(Exception):
+                session.start()
+            self._draw(look=True)
             return
         except Exception as exc:
             self._notify("error", f"{type(exc).__name__}: {exc}", "red")

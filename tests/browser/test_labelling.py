@@ -9,7 +9,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.session import Phase
-from tests.browser.conftest import wait_until
+from tests.browser.conftest import open_tab, wait_until
 
 
 def _scene_has(page, name: str) -> bool:
@@ -429,7 +429,7 @@ def _label_episode(tab, act) -> None:
 
 
 def test_a_keyboard_only_labeller_labels_a_whole_episode(tabs, app):
-    tab = tabs("kim", submit="enter")  # the name by Enter; no mouse from here on
+    tab = tabs("kit", submit="enter")  # the name by Enter; no mouse from here on
     keys = {"try": "Enter", "accept": "y", "reject": "n"}
     _label_episode(tab, lambda what: tab.page.keyboard.press(keys[what]))
     done = [e for e in app.store.stored_executions() if e.execution.labeller == "kim"]
@@ -442,3 +442,39 @@ def test_a_mouse_only_labeller_labels_a_whole_episode(tabs, app):
     _label_episode(tab, lambda what: tab.button(names[what]).click())
     done = [e for e in app.store.stored_executions() if e.execution.labeller == "max"]
     assert any(e.status == "completed" for e in done)
+
+
+def test_the_same_labeller_in_a_second_tab_is_offered_to_take_the_episode_over(browser, app):
+    first = open_tab(browser, app, "tia")
+    task = first.session.view().task_id
+    # the second tab, another browser: the name, then the offer instead of a second session
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    page = context.new_page()
+    try:
+        before = {t.client.client_id for t in app.tabs()}
+        page.goto(app.url)
+        second = wait_until(
+            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
+            30,
+            "the second tab",
+        )
+        field = (
+            page.locator("label", has_text="Your name")
+            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+            .locator("input:not([type='hidden'])")
+        )
+        field.fill("tia")
+        page.get_by_role("button", name="Start labelling").click()
+        page.get_by_text("Your episode is open in another tab").wait_for(timeout=20_000)
+        assert second.session is None and first.session is not None  # nothing taken yet
+        page.get_by_role("button", name="Take it over").click()
+        wait_until(lambda: second.ready.is_set(), 30, "the episode in the second tab")
+        assert second.session.view().task_id == task  # the same episode, resumed
+        assert first.session is None  # the first tab stopped labelling, and says why
+        first.page.get_by_text("taken over in another tab").wait_for(timeout=20_000)
+        first.page.keyboard.press("Enter")  # its hotkeys do nothing now: no raw error
+        page.wait_for_timeout(300)
+        assert not first.errors
+    finally:
+        context.close()
+        first.context.close()
