@@ -432,7 +432,7 @@ def test_a_keyboard_only_labeller_labels_a_whole_episode(tabs, app):
     tab = tabs("kit", submit="enter")  # the name by Enter; no mouse from here on
     keys = {"try": "Enter", "accept": "y", "reject": "n"}
     _label_episode(tab, lambda what: tab.page.keyboard.press(keys[what]))
-    done = [e for e in app.store.stored_executions() if e.execution.labeller == "kim"]
+    done = [e for e in app.store.stored_executions() if e.execution.labeller == "kit"]
     assert any(e.status == "completed" for e in done)
 
 
