@@ -120,14 +120,9 @@ def _import(args: argparse.Namespace) -> int:
     from knotlab.labeling_db.store import open_store
 
     _check_library_arg(args)
-    if (args.format or SUFFIXES.get(Path(args.path).suffix.lower())) == "h5":
-        items = _read_h5(args)  # a bad file is refused before the database opens
-        with open_store(db_url(args), create=True, auto_upgrade=False, persistent=True) as store:
-            ids = store.add_executions(items, if_exists=args.if_exists)
-        n = sum(i is not None for i in ids)
-        print(f"imported {n} executions (HDF5) into {store.url}", file=sys.stderr)
-        return 0
-    items = read_labels(args.path, args.format)  # a bad file is refused before the database opens
+    h5 = (args.format or SUFFIXES.get(Path(args.path).suffix.lower())) == "h5"
+    # a bad file is refused before the database opens; then one import path for every format
+    items = _read_h5(args) if h5 else read_labels(args.path, args.format)
     with open_store(db_url(args), create=True, auto_upgrade=False, persistent=True) as store:
         n = import_labels(store, args.path, if_exists=args.if_exists, items=items)
     print(f"imported {n} executions into {store.url}", file=sys.stderr)

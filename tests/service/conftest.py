@@ -23,6 +23,7 @@ class Served:
     url: str
     process: subprocess.Popen
     token: str | None = None
+    printed: str = ""  # what it printed up to the URL
 
 
 def start_service(*args: str, token: str | None = None, timeout: float = 120) -> Served:
@@ -47,7 +48,7 @@ def start_service(*args: str, token: str | None = None, timeout: float = 120) ->
             break
         lines.append(line)
         if (m := URL.search(line)) is not None:
-            return Served(m.group(1), proc, token)
+            return Served(m.group(1), proc, token, "".join(lines))
     proc.kill()
     raise AssertionError("knotlab serve did not start:\n" + "".join(lines))
 

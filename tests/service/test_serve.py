@@ -176,11 +176,14 @@ def test_a_client_drives_a_simulated_episode_to_the_benchs_knot(service):
 def test_a_non_loopback_host_needs_the_token_and_ctrl_c_stops_it():
     served = start_service("--workers", "1", "--host", "0.0.0.0", "--model", "none")
     try:
-        output = served.process.stdout  # the generated token was printed before the URL
+        # the generated token was printed before the URL
+        token = re.search(r"generated an access token .*: (\S+)", served.printed)
+        assert token is not None, served.printed
         url = re.sub(r"//0\.0\.0\.0", "//127.0.0.1", served.url)
         assert httpx.get(f"{url}/health").status_code == 401
         r = httpx.get(f"{url}/model", headers={"Authorization": "Bearer wrong"})
         assert r.status_code == 401 and "bearer token" in r.json()["error"]
-        assert output is not None
+        ok = httpx.get(f"{url}/model", headers={"Authorization": f"Bearer {token.group(1)}"})
+        assert ok.status_code == 200 and ok.json()["model"] is None
     finally:
         assert stop_service(served) < 5
