@@ -80,6 +80,19 @@ def policy_list(text: str) -> list[str]:
     return names
 
 
+def physics_setting(text: str) -> str:
+    """argparse type of --world-params/--model-params: a setting name or a .json file, checked
+    now (the combined setting's draws are seeded with --seed when the bench runs)."""
+    from knotlab.core.errors import KnotlabError
+    from knotlab.core.world.mismatch import parse_setting
+
+    try:
+        parse_setting(text)
+    except KnotlabError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
 
@@ -161,6 +174,15 @@ def _run(args: argparse.Namespace) -> int:
         "share_simulations": args.share_simulations,
         "argv": sys.argv,
     }
+    from knotlab.core.world.estimate import EstimatorKind
+    from knotlab.core.world.mismatch import parse_setting
+
+    world = parse_setting(args.world_params, seed=args.seed)
+    agent_model = parse_setting(args.model_params, seed=args.seed)
+    estimator = EstimatorKind.parse(args.estimator)
+    arguments.update(
+        world_params=args.world_params, model_params=args.model_params, estimator=args.estimator
+    )
     n_tasks = min(args.tasks, len(task_set))
     result = run_bench(
         out_dir,
@@ -179,6 +201,9 @@ def _run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         arguments=arguments,
         share_simulations=args.share_simulations,
+        world=world,
+        agent_model=agent_model,
+        estimator=estimator,
     )
     level = task_set.metadata.get("level", args.level)
     print(
@@ -282,6 +307,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"
+    )
+    p.add_argument(
+        "--world-params",
+        type=physics_setting,
+        default="nominal",
+        metavar="NAME|FILE.json",
+        help="the physics of the world that executes: nominal, FACTOR+PCT or FACTOR-PCT (e.g. "
+        "mass+25, table_friction-50), combinedPCT (every factor drawn per task within +-PCT, "
+        "seeded by --seed and the task), or a JSON file of rope/gripper values (default nominal)",
+    )
+    p.add_argument(
+        "--model-params",
+        type=physics_setting,
+        default="nominal",
+        metavar="NAME|FILE.json",
+        help="the physics the agent simulates with (lookahead, oracle, the tracker's "
+        "prediction), same forms (default nominal)",
+    )
+    p.add_argument(
+        "--estimator",
+        choices=("perfect", "tracker"),
+        default="perfect",
+        help="how the agent knows the rope's state: perfect (the world's own state) or tracker "
+        "(its previous estimate carried through each executed step and pulled to the camera "
+        "cloud; needs a centreline library) (default perfect)",
     )
     add_no_progress_argument(p)
     add_flag(p, "--json", detail="a summary after the text")

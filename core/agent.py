@@ -40,6 +40,7 @@ from knotlab.core.selection.policies import PolicyConfig, policy_config
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 from knotlab.core.tasks import Task, get_task
+from knotlab.core.world.estimate import StateEstimator
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.protocol import NO_WORLD, World
 from knotlab.core.world.trajectory import GripperTrajectory
@@ -314,8 +315,13 @@ class Agent:
         noise: float = 0.0,
         max_steps: int | None = None,
         memo: OutcomeMemo | None = None,
+        model_world: World | None = None,
+        estimator: StateEstimator | None = None,
     ) -> EpisodeRecord:
-        """Reset the world to ``start`` and act until the goal or the task's step limit."""
+        """Reset the world to ``start`` and act until the goal or the task's step limit.
+
+        ``model_world``/``estimator``: the agent's own model of the world, apart from the world
+        that executes (`core.experiments.episode.run_episode`); default: the world itself."""
         from knotlab.core.experiments.episode import run_episode
 
         if isinstance(start, RopeTask):
@@ -332,6 +338,8 @@ class Agent:
             max_steps=self.task.step_limit if max_steps is None else max_steps,
             observe_noise=noise,
             memo=memo,
+            model_world=model_world,
+            estimator=estimator,
         )
 
     def warm_up(self, world: World, start_nodes_k3: Sequence[Sequence[float]]) -> None:

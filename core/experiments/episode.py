@@ -17,13 +17,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from knotlab.core.errors import KnotlabError
+from knotlab.core.errors import InvalidInputError, KnotlabError
 from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.execution.memo import OutcomeMemo, execute_with_memo
 from knotlab.core.failures import FailureKind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.decision import StepContext
+from knotlab.core.world.estimate import PerfectEstimator, StateEstimator, place_estimate
+from knotlab.core.world.observation import ObservationModel, centreline_points
 from knotlab.core.world.protocol import World
 from knotlab.core.world.trajectory import GripperTrajectory
 
@@ -94,6 +96,9 @@ class EpisodeOutcome:
     # (`encode_nodes`).
     scores: tuple[float | None, ...] = ()
     nodes_before: tuple[str | None, ...] = ()
+    # With a state estimator that is not the world's own state: the mean node error (mm) of the
+    # estimate each step decided from (absent otherwise).
+    estimate_error_mm: tuple[float, ...] = ()
 
     @classmethod
     def errored(
@@ -118,6 +123,11 @@ class EpisodeOutcome:
             "stages": [int(s) for s in self.stages],
             "scores": [None if v is None else round(v, 6) for v in self.scores],
             "nodes_before": list(self.nodes_before),
+            **(
+                {"estimate_error_mm": [round(e, 3) for e in self.estimate_error_mm]}
+                if self.estimate_error_mm
+                else {}
+            ),
         }
 
 
@@ -158,6 +168,11 @@ class EpisodeRecord:
             tuple(int(s.stage) for s in self.steps),
             tuple(_finite(s.scores_a[s.chosen]) for s in self.steps),
             tuple(encode_nodes(s.nodes_before_k3) for s in self.steps),
+            tuple(
+                float(s.info["estimate_error_mm"])
+                for s in self.steps
+                if "estimate_error_mm" in s.info
+            ),
         )
 
     def summary(self) -> dict:
@@ -192,6 +207,8 @@ def run_episode(
     max_steps: int | None = None,
     observe_noise: float = 0.0,
     memo: OutcomeMemo | None = None,
+    model_world: World | None = None,
+    estimator: StateEstimator | None = None,
 ) -> EpisodeRecord:
     """Reset the world to the start rope and act with ``agent`` until its task's goal or
     ``max_steps`` (default: the task's step limit).
@@ -199,6 +216,12 @@ def run_episode(
     ``memo``: simulated outcomes shared with the other policies run on this task (same start,
     same seed), so an execution another policy already simulated is restored, not simulated
     again; the episode is the same either way.
+
+    ``model_world`` and ``estimator``: the agent's model of the world (core/world/estimate.py).
+    Its policies simulate in ``model_world`` placed in the ``estimator``'s state, and only the
+    chosen demo runs in ``world``. Neither given (or a perfect estimator and no model world): the
+    agent's model is the world itself, which is what a perfect estimate with the world's own
+    physics amounts to, bit for bit.
     """
     t_episode = time.perf_counter()
     steps: list[StepRecord] = []
@@ -219,15 +242,42 @@ def run_episode(
             time.perf_counter() - t_episode,
         )
     keys = agent.library.keys
+    estimator = estimator if estimator is not None else PerfectEstimator()
+    itself = model_world is None or model_world is world
+    if itself and not isinstance(estimator, PerfectEstimator):
+        raise InvalidInputError("an estimated state needs a model world apart from the world")
+    observation = agent.featurizer.observation
+    if (
+        not isinstance(estimator, PerfectEstimator)
+        and observation is not ObservationModel.CENTRELINE
+    ):
+        raise InvalidInputError(
+            f"the {estimator.kind.value} estimator reports a centreline; the library's "
+            f"observation model is {observation.value}"
+        )
+    sim_world = world if model_world is None else model_world
+    estimator.start(world, seed, sim_world)
     for step in range(limit):
         nodes_before = world.rope_nodes()
+        estimate_info: dict = {}
         try:
             t0 = time.perf_counter()
-            cloud = agent.observe(world, noise=observe_noise, seed=step_seed(seed, step))
+            if isinstance(estimator, PerfectEstimator):
+                cloud = agent.observe(world, noise=observe_noise, seed=step_seed(seed, step))
+                if not itself:
+                    place_estimate(sim_world, estimator.estimate(world))
+            else:
+                estimate = estimator.estimate(world)
+                place_estimate(sim_world, estimate)
+                cloud = centreline_points(estimate.nodes_k3)
+                if observe_noise > 0:
+                    rng = np.random.default_rng(step_seed(seed, step))
+                    cloud = cloud + rng.normal(0.0, observe_noise, size=cloud.shape)
+                estimate_info = {"estimate_error_mm": estimate.error_mm}
             scan = agent.scan(cloud)
             t_scan = time.perf_counter() - t0
             ctx = StepContext(
-                world,
+                sim_world,
                 cloud,
                 scan,
                 agent.featurizer,
@@ -238,13 +288,15 @@ def run_episode(
             )
             decision = agent.policy.choose(ctx)
             t_decide = time.perf_counter() - t0
-            if decision.outcome is not None:
+            if itself and decision.outcome is not None:
                 world.restore(decision.outcome.snapshot_after)
                 outcome = decision.outcome
-            else:
+            else:  # the model's simulated outcome is only its prediction: the world acts
                 outcome = execute_with_memo(
                     memo, world, agent.transferer, cloud, decision.action, task=agent.task
                 )
+            if not itself:
+                estimator.executed(outcome.plan.trajectory, sim_world)
         except _NUMERIC_ERRORS as exc:
             log.warning("task %s step %d: %s: %s", task_id, step, type(exc).__name__, exc)
             failure_kind, error = FailureKind.ERROR, f"{type(exc).__name__}: {exc}"
@@ -271,7 +323,7 @@ def run_episode(
                     "step_s": time.perf_counter() - t0,
                     **outcome.plan.timings,
                 },
-                info=decision.info,
+                info={**decision.info, **estimate_info},
             )
         )
         if outcome.knot:

@@ -178,10 +178,12 @@ def tracked_centreline(
     *,
     radius: float,
     rng: np.random.Generator,
+    reach: float = 1.0,
 ) -> np.ndarray:
     """A tracker's centreline (2K - 1, 3): the prior chain pulled to the visible surface, smoothed.
 
-    Each prior point p takes the mean xy of the surface points within ``TRACKER_RADIUS`` of it in
+    Each prior point p takes the mean xy of the surface points within ``reach * TRACKER_RADIUS``
+    of it in
     xy whose centre height (z - radius) is within one radius of p's (the other strand at a
     crossing lies a diameter above or below, so it does not pull), and their mean z minus
     ``radius``; points with no such neighbour keep p plus N(0, TRACKER_NOISE^2) (occluded).
@@ -194,7 +196,7 @@ def tracked_centreline(
     surface = np.asarray(surface_n3, dtype=float)
     if len(surface):
         tree = cKDTree(surface[:, :2])
-        for i, near in enumerate(tree.query_ball_point(prior[:, :2], TRACKER_RADIUS)):
+        for i, near in enumerate(tree.query_ball_point(prior[:, :2], reach * TRACKER_RADIUS)):
             if not near:
                 continue
             pts = surface[near]

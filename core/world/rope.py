@@ -119,7 +119,7 @@ class Perturbation:
     peak_tent: float  # max |xy tent displacement| of the accepted draw, before the length fix
 
 
-def _rescale_xy_to_length(nodes_k3: np.ndarray, target: float) -> np.ndarray:
+def scale_xy_to_length(nodes_k3: np.ndarray, target: float) -> np.ndarray:
     """Scale xy about the xy centroid so the 3-D polyline length equals target (z untouched)."""
     centre = nodes_k3[:, :2].mean(axis=0)
 
@@ -164,7 +164,7 @@ def perturb_rope_with_info(
         cand = nodes.copy()
         cand[:, :2] += disp_k2
         # Resample first (even spacing), then scale: scaling keeps the spacing even.
-        cand = _rescale_xy_to_length(resample_by_arc_length(cand, k), target)
+        cand = scale_xy_to_length(resample_by_arc_length(cand, k), target)
         if not has_xy_self_intersection(cand):
             peak = float(np.linalg.norm(disp_k2, axis=1).max())
             return Perturbation(nodes_k3=cand, n_tries=attempt, peak_tent=peak)

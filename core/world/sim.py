@@ -75,7 +75,11 @@ class RopeParams:
     length: float = 1.0  # m
     radius: float = 0.01  # m
     mass: float = 0.2  # kg, whole rope
-    friction: float = 0.8  # lateral, rope and table
+    friction: float = 0.8  # lateral, of the rope (and of the table unless table_friction is set)
+    # The table's own lateral friction; None: the rope's. PyBullet multiplies the two bodies'
+    # coefficients, so rope-on-table friction is friction * table_friction and rope-on-rope is
+    # friction ** 2: the two can be changed apart (core/world/mismatch.py does).
+    table_friction: float | None = None
     linear_damping: float = 0.5
     angular_damping: float = 0.5
     joint_max_force: float = 1000.0  # N, link-to-link p2p constraints
@@ -100,6 +104,12 @@ class RopeParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InvalidInputError(f"RopeParams.{name} must be positive, got {value}")
+        if self.table_friction is not None and not (
+            np.isfinite(self.table_friction) and self.table_friction >= 0
+        ):
+            raise InvalidInputError(
+                f"RopeParams.table_friction must be >= 0 (or None), got {self.table_friction}"
+            )
         if 2 * self.radius > self.link_length:
             raise InvalidInputError(
                 f"RopeParams: diameter {2 * self.radius} exceeds link length {self.link_length}"
@@ -391,7 +401,8 @@ class RopeWorld:
         p.setGravity(0, 0, -prm.gravity, physicsClientId=cid)
         plane = p.createCollisionShape(p.GEOM_PLANE, physicsClientId=cid)
         table = p.createMultiBody(0, plane, physicsClientId=cid)
-        p.changeDynamics(table, -1, lateralFriction=prm.friction, physicsClientId=cid)
+        table_friction = prm.friction if prm.table_friction is None else prm.table_friction
+        p.changeDynamics(table, -1, lateralFriction=table_friction, physicsClientId=cid)
         half = 0.5 * prm.link_length
         shape = p.createCollisionShape(
             p.GEOM_CAPSULE,

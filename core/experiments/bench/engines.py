@@ -21,9 +21,12 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.execution.memo import OutcomeMemo
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.world.estimate import EstimatorKind
+from knotlab.core.world.mismatch import NOMINAL, NOMINAL_SETTING, PhysicsParams, PhysicsSetting
 
 if TYPE_CHECKING:  # the agent imports the simulator's records: only for the checker
     from knotlab.core.agent import Agent
+    from knotlab.core.world.sim import RopeWorld
 
 
 log = logging.getLogger(__name__)
@@ -33,6 +36,7 @@ ENGINES: tuple[Engine, ...] = get_args(Engine)
 # Outcomes one task's policies may share: ~70 simulations a task on the main set (measured,
 # bench/sharing.py), each a few hundred kB with its trajectory, so a task never evicts.
 SHARED_MEMO_SIZE = 512
+_MODEL_WORLDS = 8  # model worlds a worker keeps (each a PyBullet client)
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,6 +59,11 @@ class WorkerSpec:
     library: DemoLibrary
     model: QModel | None = None
     task: str | None = None  # None: the task the library records
+    # The world that executes and the agent's model of it (core/world/mismatch.py and
+    # estimate.py); the defaults are the nominal world, simulated in itself.
+    world: PhysicsSetting = NOMINAL_SETTING
+    agent_model: PhysicsSetting = NOMINAL_SETTING
+    estimator: EstimatorKind = EstimatorKind.PERFECT
 
 
 class BenchWorker:
@@ -68,6 +77,10 @@ class BenchWorker:
         single_thread_blas()
         self.spec = spec
         self.world = RopeWorld()
+        # Worlds by physics (the world that executes, and apart from them the agent's model
+        # worlds), kept for the worker's life: the outcome memo keys a world by its identity.
+        self._worlds: dict[PhysicsParams, RopeWorld] = {NOMINAL: self.world}
+        self._model_worlds: dict[PhysicsParams, RopeWorld] = {}
         # The base agent (nearest neighbour) checks the library and model once and warms the
         # registrar; every policy's agent shares its caches.
         self.agent = Agent(spec.library, spec.model, "nn", task=spec.task)
@@ -93,36 +106,73 @@ class BenchWorker:
     def run(self, job: EpisodeJob, memo: OutcomeMemo | None = None) -> dict:
         """Run one episode; never raises (an unexpected error is a failure of kind "error")."""
         from knotlab.core.experiments.episode import run_episode
+        from knotlab.core.world.estimate import make_estimator
         from knotlab.core.world.sim import RopeWorld
 
         t0 = time.perf_counter()
         try:
+            world, model_world, start = self._worlds_for(job)
             record = run_episode(
                 self.agent_for(job.policy),
-                self.world,
-                job.start_nodes_k3,
+                world,
+                start,
                 task_id=job.task_id,
                 seed=job.seed,
                 max_steps=job.max_steps,
                 observe_noise=job.noise,
                 memo=memo,
+                model_world=model_world,
+                estimator=make_estimator(self.spec.estimator),
             )
             out = record.summary()
+            if self.spec.world.per_task:
+                out["world_scales"] = {
+                    k: round(v, 6) for k, v in self.spec.world.scales_for(job.task_id).items()
+                }
         except Exception as exc:  # a long benchmark must outlive one bad task
             log.error("%s on %s crashed: %s", job.policy, job.task_id, traceback.format_exc())
             out = _error_record(job, f"{type(exc).__name__}: {exc}")
             out["wall_s"] = round(time.perf_counter() - t0, 4)
-            with contextlib.suppress(Exception):  # the world may be broken: start afresh
-                self.world.close()
+            for w in [*self._worlds.values(), *self._model_worlds.values()]:
+                with contextlib.suppress(Exception):  # the world may be broken: start afresh
+                    w.close()
             self.world = RopeWorld()
+            self._worlds, self._model_worlds = {NOMINAL: self.world}, {}
         out.update(task_index=job.task_index, seed=job.seed, pid=os.getpid())
         if self.node is not None:
             out["node"] = self.node  # which Ray node ran it: per-node throughput
         return out
 
+    def _worlds_for(self, job: EpisodeJob) -> tuple[RopeWorld, RopeWorld | None, np.ndarray]:
+        """The job's world, the agent's model world (None: the world itself) and its start rope
+        (scaled in xy to the world's rope length where that differs from the task's)."""
+        from knotlab.core.world.mismatch import measured_model
+        from knotlab.core.world.rope import rope_length, scale_xy_to_length
+        from knotlab.core.world.sim import RopeWorld
+
+        spec = self.spec
+        physics = spec.world.params_for(job.task_id)
+        if physics not in self._worlds:
+            self._worlds[physics] = RopeWorld(physics.rope, physics.gripper)
+        world = self._worlds[physics]
+        start = job.start_nodes_k3
+        if physics.rope.length != NOMINAL.rope.length:
+            ratio = physics.rope.length / NOMINAL.rope.length
+            start = scale_xy_to_length(start, ratio * rope_length(start))
+        model = measured_model(spec.agent_model.params_for(job.task_id), start)
+        if physics == model and spec.estimator is EstimatorKind.PERFECT:
+            return world, None, start
+        if model not in self._model_worlds:
+            if len(self._model_worlds) >= _MODEL_WORLDS:  # a combined setting: one per task
+                oldest = next(iter(self._model_worlds))
+                self._model_worlds.pop(oldest).close()
+            self._model_worlds[model] = RopeWorld(model.rope, model.gripper)
+        return world, self._model_worlds[model], start
+
     def close(self) -> None:
-        """Release the simulator."""
-        self.world.close()
+        """Release the simulators."""
+        for w in [*self._worlds.values(), *self._model_worlds.values()]:
+            w.close()
 
 
 def _ray_node_id() -> str | None:

@@ -33,13 +33,28 @@ class RunIdentity:
     max_steps: int
     model_hash: str | None = None  # None until a learned policy ran
     task: str = "overhand"  # results made before tasks were named are the overhand knot's
+    # The world that executes, the agent's model of it, and its state estimator (results made
+    # before they could differ: the nominal world, simulated in itself).
+    world: str = "nominal"
+    agent_model: str = "nominal"
+    estimator: str = "perfect"
 
     def differences(self, stored: RunIdentity) -> list[str]:
         """'name: stored X, now Y' for every field that differs (a model hash not yet pinned on
         either side does not)."""
         diffs = [
             f"{name}: stored {getattr(stored, name)!r}, now {getattr(self, name)!r}"
-            for name in ("library_hash", "task_set_hash", "seed", "noise", "max_steps", "task")
+            for name in (
+                "library_hash",
+                "task_set_hash",
+                "seed",
+                "noise",
+                "max_steps",
+                "task",
+                "world",
+                "agent_model",
+                "estimator",
+            )
             if getattr(stored, name) != getattr(self, name)
         ]
         if (

@@ -47,6 +47,8 @@ from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.policies import policy_config
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.tasks import check_task_of, get_task
+from knotlab.core.world.estimate import EstimatorKind
+from knotlab.core.world.mismatch import NOMINAL_SETTING, PhysicsSetting
 from knotlab.core.world.observation import ObservationModel
 
 
@@ -172,6 +174,9 @@ def run_bench(
     arguments: dict | None = None,
     training_study: bool = False,
     share_simulations: bool = False,
+    world: PhysicsSetting = NOMINAL_SETTING,
+    agent_model: PhysicsSetting = NOMINAL_SETTING,
+    estimator: EstimatorKind = EstimatorKind.PERFECT,
 ) -> BenchResult:
     """Run (or resume) ``policies`` on the first ``n_tasks`` tasks; write outcomes and results.
 
@@ -180,6 +185,9 @@ def run_bench(
     ``share_simulations``: run each task's policies on one worker with one outcome memo (the
     same outcomes, ~30 % less episode time on the main set; the decision times and expansion
     counts recorded are then those of a policy that found some simulations done).
+    ``world``, ``agent_model``, ``estimator``: the physics of the world that executes, the physics
+    the agent simulates with, and how it estimates the rope's state (default: the nominal world,
+    simulated in itself); a combined setting draws each task's world with ``seed``.
     """
     t0 = time.perf_counter()
     policies = list(dict.fromkeys(policies))
@@ -225,6 +233,9 @@ def run_bench(
         int(max_steps),
         model.content_hash() if learned and model is not None else None,
         task.name,
+        world.name,
+        agent_model.name,
+        estimator.value,
     ).merged(stored_identity(out, finished))
     out.mkdir(parents=True, exist_ok=True)
     _write_json_atomic(out / RUN_FILE, {"identity": asdict(identity)})
@@ -237,7 +248,7 @@ def run_bench(
     log.info("%d episodes to run, %d already finished", len(jobs), skipped)
     ran = 0
     if jobs:
-        spec = WorkerSpec(library, model if learned else None)
+        spec = WorkerSpec(library, model if learned else None, None, world, agent_model, estimator)
         with outcome_log.open() as fh:
 
             def on_result(rec: dict) -> None:
@@ -275,6 +286,13 @@ def run_bench(
         "library_hash": lib_hash,
         "task": library.task,
         "observation_model": observation.value,
+        # What every task's world and the agent's model were (a combined setting's per-task
+        # draws are on each outcome line, "world_scales").
+        "physics": {
+            "world": world.record(),
+            "agent_model": agent_model.record(),
+            "estimator": estimator.value,
+        },
         "model_hash": model.content_hash() if model is not None else None,
         "model_hyperparameters": model.hyperparameters if model is not None else None,
         "task_set_hash": identity.task_set_hash,

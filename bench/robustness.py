@@ -1,0 +1,232 @@
+"""The robot's model is not the world: policies on worlds that differ from their model.
+
+Runs each study setting (a world, and the agent's state estimator; the agent always simulates
+with the nominal physics its library and model were made in) as a resumable bench run in
+``OUT/<setting>/`` (`knotlab bench --world-params ... --estimator ...`, the same files), then
+compares every policy with its own matched-world outcomes on the same tasks (default: the
+committed whole Table I run on an AVX-512 EPYC, ``results/table1_shared_main``): success with
+Wilson 95 % intervals, the tasks the mismatch lost and gained, an exact sign test, which single
+factor hurts which policy most, and the tracker's error per step. Writes ``OUT/summary.json`` and
+``OUT/robustness.png`` and prints a markdown table.
+
+Usage:
+  .venv/bin/python bench/robustness.py run --out-dir results/robustness_main \\
+      --settings combined25,combined50,tracker --policies nn,greedy,la2x5 --tasks 200
+  .venv/bin/python bench/robustness.py report --out-dir results/robustness_main
+
+Settings: nominal, tracker, combinedPCT, FACTOR+PCT / FACTOR-PCT, familiesPCT (every factor at
++-PCT). Rerun the same command to resume; a setting's folder refuses other arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from knotlab.core.experiments.robustness import (
+    PairedRow,
+    paired_row,
+    parse_study_settings,
+    worst_factors,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+ORDER = ("nn", "greedy", "la1x10", "la2x5", "oracle")
+
+
+def _outcomes(path: Path) -> dict[str, dict[str, dict]]:
+    """policy -> task id -> outcome line, from an outcomes.jsonl (empty if absent)."""
+    out: dict[str, dict[str, dict]] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                rec = json.loads(line)
+                out.setdefault(rec["policy"], {})[rec["task_id"]] = rec
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run (or resume) every setting, one after the other."""
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.experiments.bench import run_bench
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.tasks import get_task
+    from knotlab.core.world.mismatch import parse_setting
+
+    spec = get_task(args.task)
+    library = DemoLibrary.load(spec.files.library_path)
+    model = QModel.load(spec.files.model_path)
+    task_set = TaskSet.load(spec.files.task_set_path(args.level, "test"))
+    policies = [p for p in args.policies.split(",") if p]
+    for setting in parse_study_settings(args.settings):
+        t0 = time.perf_counter()
+        out = Path(args.out_dir) / setting.name
+        print(f"== {setting.name}: {', '.join(policies)} on {args.tasks} tasks -> {out}")
+        result = run_bench(
+            out,
+            library=library,
+            task_set=task_set,
+            policies=policies,
+            n_tasks=args.tasks,
+            model=model,
+            seed=args.seed,
+            workers=args.workers,
+            progress=not args.no_progress,
+            arguments={"study": "robustness", "setting": setting.name, "argv": sys.argv},
+            share_simulations=True,
+            world=parse_setting(setting.world, seed=args.seed),
+            estimator=setting.estimator,
+        )
+        print(
+            f"   {result.ran} run, {result.skipped} resumed, {time.perf_counter() - t0:.0f} s: "
+            + ", ".join(f"{r['policy']} {r['successes']}/{r['n']}" for r in result.rows)
+        )
+    return report(args)
+
+
+def _rows(args: argparse.Namespace) -> tuple[list[PairedRow], dict[str, dict], list[str]]:
+    matched = _outcomes(Path(args.matched) / "outcomes.jsonl")
+    rows: list[PairedRow] = []
+    tracker: dict[str, dict] = {}
+    names = []
+    for folder in sorted(p for p in Path(args.out_dir).iterdir() if p.is_dir()):
+        here = _outcomes(folder / "outcomes.jsonl")
+        if not here:
+            continue
+        names.append(folder.name)
+        for policy in sorted(here, key=lambda p: ORDER.index(p) if p in ORDER else 99):
+            recs = list(here[policy].values())
+            rows.append(paired_row(folder.name, policy, recs, matched.get(policy, {})))
+            errors = [e for r in recs for e in r.get("estimate_error_mm", [])]
+            if errors:
+                by_step: dict[int, list[float]] = {}
+                for r in recs:
+                    for i, e in enumerate(r.get("estimate_error_mm", [])):
+                        by_step.setdefault(i, []).append(e)
+                tracker[f"{folder.name}/{policy}"] = {
+                    "mean_mm": sum(errors) / len(errors),
+                    "by_step_mean_mm": {i + 1: sum(v) / len(v) for i, v in sorted(by_step.items())},
+                }
+    return rows, tracker, names
+
+
+def report(args: argparse.Namespace) -> int:
+    """Print the comparison table, write summary.json and the plot."""
+    rows, tracker, names = _rows(args)
+    if not rows:
+        print(f"no results under {args.out_dir}")
+        return 1
+    print(f"\nAgainst the matched world ({args.matched}), each policy on the tasks both ran:\n")
+    print("| setting | policy | n | success | 95 % Wilson | matched | change | lost | gained | p |")
+    print("|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
+    for r in rows:
+        lo, hi = r.wilson
+        err = f" ({r.errored} errored: not a result)" if r.errored else ""
+        print(
+            f"| {r.setting} | {r.policy} | {r.n} | {100 * r.rate:.1f} %{err} | "
+            f"[{100 * lo:.1f}, {100 * hi:.1f}] | {100 * r.matched_rate:.1f} % | "
+            f"{r.change_points:+.1f} | {r.lost} | {r.gained} | {r.p_value:.3g} |"
+        )
+    worst = worst_factors(rows)
+    if worst:
+        print("\nThe single factor that costs each policy most:")
+        for policy, (setting, points) in worst.items():
+            print(f"- {policy}: {setting} ({points:+.1f} points)")
+    for key, t in tracker.items():
+        steps = ", ".join(f"step {s}: {v:.1f}" for s, v in t["by_step_mean_mm"].items())
+        print(f"\nTracker error, {key}: mean {t['mean_mm']:.1f} mm ({steps})")
+    out = Path(args.out_dir)
+    summary = {
+        "matched": str(args.matched),
+        "settings": names,
+        "rows": [
+            {
+                **r.__dict__,
+                "rate": r.rate,
+                "matched_rate": r.matched_rate,
+                "wilson": r.wilson,
+                "change_points": r.change_points,
+            }
+            for r in rows
+        ],
+        "worst_factor": {p: {"setting": s, "points": v} for p, (s, v) in worst.items()},
+        "tracker_error": tracker,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    _plot(rows, out / "robustness.png")
+    print(f"\nwrote {out / 'summary.json'} and {out / 'robustness.png'}")
+    return 0
+
+
+def _plot(rows: list[PairedRow], path: Path) -> None:
+    """Success (with Wilson bars) per setting and policy, the matched rate as a tick."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    settings = list(dict.fromkeys(r.setting for r in rows))
+    policies = [p for p in ORDER if any(r.policy == p for r in rows)]
+    width = 0.8 / max(len(policies), 1)
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(settings) + 2), 4.2), dpi=120)
+    for j, policy in enumerate(policies):
+        xs, ys, lo, hi, ms = [], [], [], [], []
+        for i, setting in enumerate(settings):
+            row = next((r for r in rows if r.setting == setting and r.policy == policy), None)
+            if row is None or row.n == 0:
+                continue
+            a, b = row.wilson
+            xs.append(i + (j - (len(policies) - 1) / 2) * width)
+            ys.append(100 * row.rate)
+            lo.append(100 * (row.rate - a))
+            hi.append(100 * (b - row.rate))
+            ms.append(100 * row.matched_rate)
+        ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2, label=policy)
+        ax.scatter(xs, ms, marker="_", s=120, color="black", zorder=3)
+    ax.set_xticks(range(len(settings)), settings, rotation=20)
+    ax.set_ylabel("success within 5 steps (%)")
+    ax.set_ylim(0, 105)
+    ax.set_title("Policies on worlds unlike their model (black tick: the matched world)")
+    ax.legend(ncol=len(policies), fontsize=8, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: run or report."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    for name in ("run", "report"):
+        p = sub.add_parser(name)
+        p.add_argument("--out-dir", default=str(ROOT / "results" / "robustness_main"))
+        p.add_argument(
+            "--matched",
+            default=str(ROOT / "results" / "table1_shared_main"),
+            help="the matched world's bench folder (its outcomes.jsonl)",
+        )
+        if name == "run":
+            p.add_argument("--settings", default="combined25,combined50,tracker")
+            p.add_argument("--policies", default="nn,greedy,la2x5")
+            p.add_argument("--tasks", type=int, default=200)
+            p.add_argument("--task", default="overhand")
+            p.add_argument("--level", default="main")
+            p.add_argument("--seed", type=int, default=0)
+            p.add_argument("--workers", type=int, default=None)
+            p.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    if args.cmd == "run":
+        parse_study_settings(args.settings)  # a bad name fails before any work
+        if args.tasks < 1 or not math.isfinite(args.tasks):
+            parser.error("--tasks must be >= 1")
+        return run(args)
+    return report(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,270 @@
+"""What an agent knows of the rope's state, and the model world it simulates that state in.
+
+A policy that simulates (lookahead, the oracle) never touches the world that executes: it
+simulates in a *model world* (a `RopeWorld` with the agent's own physics) placed in the state a
+`StateEstimator` reports. A `RopeEstimate` carries:
+
+- ``nodes_k3``: the rope's estimated node chain (K, 3), always;
+- ``state``: the full dynamic state (every link's pose and velocity), only from the `perfect`
+  estimator, i.e. an oracle state estimate; the model adopts it exactly where its rope has the
+  same links (count, length, radius), and otherwise places its own rope at rest along the nodes;
+- ``error_mm``: the mean distance of the estimated nodes to the true ones (a simulation knows the
+  truth: it is reported, never used to decide).
+
+Estimators:
+
+- ``perfect``: the world's own state (what every result before model error was measured with);
+- ``tracker``: a rope tracker that is not told the truth. Its prior for a step is its own
+  previous estimate carried through the trajectory the robot executed, simulated in the agent's
+  model (the prediction step of a physics-based tracker). The prior is then pulled to the camera's
+  visible surface points (`tracked_centreline`: a 1 cm voxel cloud with sensor noise; a point
+  hidden under a crossing keeps its prior plus noise), and a seeded drift (a random walk of the
+  whole estimate in xy, as a slowly drifting camera calibration) is added. The first estimate
+  starts from the true chain: the start ropes lie uncrossed, which every tracker initialises on.
+
+Same seed, same estimates: the tracker draws its noise and drift from one Generator per episode.
+Shape suffixes: k = rope nodes, n = cloud points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from enum import StrEnum
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from knotlab.core.errors import InvalidInputError
+from knotlab.core.world.observation import TRACKER_NOISE, tracked_centreline
+from knotlab.core.world.protocol import World
+from knotlab.core.world.rope import resample_by_arc_length, rope_length, scale_xy_to_length
+
+if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
+    from knotlab.core.world.sim import SimSnapshot
+    from knotlab.core.world.trajectory import GripperTrajectory
+
+# The tracker's camera: a 1 cm voxel cloud of the visible surface (as the `tracked` observation).
+_TRACKER_VOXEL = 0.01
+_TRACKER_POINTS = 1000
+TRACKER_DRIFT = 0.001  # m per step, standard deviation of the drift's xy random walk
+
+
+class EstimatorKind(StrEnum):
+    """How the agent learns the rope's state."""
+
+    PERFECT = "perfect"
+    TRACKER = "tracker"
+
+    @classmethod
+    def parse(cls, value: str | EstimatorKind) -> EstimatorKind:
+        """The estimator named ``value``; a one-line error naming the choices otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            choices = ", ".join(k.value for k in cls)
+            raise InvalidInputError(
+                f"unknown state estimator {value!r}; expected one of {choices}"
+            ) from None
+
+
+@dataclass(frozen=True, eq=False)
+class RopeEstimate:
+    """The agent's estimate of the rope: nodes always, the full state only when perfect."""
+
+    nodes_k3: np.ndarray
+    state: SimSnapshot | None = None
+    error_mm: float = 0.0  # mean distance of the estimated nodes to the true ones
+
+    @property
+    def is_exact(self) -> bool:
+        """Whether this is the world's own full state."""
+        return self.state is not None
+
+
+def node_error_mm(estimate_k3: np.ndarray, truth_k3: np.ndarray) -> float:
+    """Mean distance (mm) between two node chains, the estimate resampled to the truth's count."""
+    truth = np.asarray(truth_k3, dtype=float)
+    est = np.asarray(estimate_k3, dtype=float)
+    if est.shape != truth.shape:
+        est = resample_by_arc_length(est, truth.shape[0])
+    return float(np.linalg.norm(est - truth, axis=1).mean() * 1000.0)
+
+
+def place_estimate(model_world: World, estimate: RopeEstimate) -> None:
+    """Put the model world's rope in the estimated state.
+
+    The full state is adopted exactly when the model's rope has the same links (count, length,
+    radius): the poses and velocities carry over, under the model's own mass, friction and
+    damping. Otherwise the model's rope is placed at rest along the estimated nodes, evenly
+    respaced, and scaled in xy to its own length where the estimate's differs (an estimate's
+    noise adds length; a model whose rope is of another length altogether measures it at the
+    start of the episode: `mismatch.measured_model`).
+    """
+    params = model_world.params
+    state = estimate.state
+    if state is not None and (state.params.n_links, state.params.length, state.params.radius) == (
+        params.n_links,
+        params.length,
+        params.radius,
+    ):
+        model_world.restore(state if state.params == params else replace(state, params=params))
+        return
+    # Evenly spaced first: an estimate's noise makes uneven segments that no rope of equal
+    # links could lie along.
+    nodes = resample_by_arc_length(estimate.nodes_k3, params.n_links + 1)
+    if abs(rope_length(nodes) - params.length) > 1e-9 * params.length:
+        nodes = scale_xy_to_length(nodes, params.length)
+    model_world.reset(nodes)
+
+
+# Each pull's reach, as multiples of the `tracked` observation's 2 cm (see `track_update`).
+TRACKER_REACHES = (1.0,)
+
+
+def chain_of_length(nodes_k3: np.ndarray, length: float, k: int) -> np.ndarray:
+    """``k`` nodes ``length / (k - 1)`` apart along the chain, centred on it: a longer rope runs
+    on past the chain's ends along their end directions, a shorter one stops short of both."""
+    nodes = np.asarray(nodes_k3, dtype=float)
+    seg = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
+    keep = np.concatenate([[True], seg > 0.0])
+    nodes, arc = nodes[keep], np.concatenate([[0.0], np.cumsum(seg)])[keep]
+    if len(nodes) < 2:
+        raise InvalidInputError("a rope estimate needs at least two distinct nodes")
+    total = arc[-1]
+    targets = 0.5 * (total - length) + np.linspace(0.0, length, k)
+    out = np.stack([np.interp(targets, arc, nodes[:, d]) for d in range(3)], axis=1)
+    head = (nodes[0] - nodes[1]) / (arc[1] - arc[0])
+    tail = (nodes[-1] - nodes[-2]) / (arc[-1] - arc[-2])
+    before, after = targets < 0.0, targets > total
+    out[before] = nodes[0] + (-targets[before])[:, None] * head
+    out[after] = nodes[-1] + (targets[after] - total)[:, None] * tail
+    return out
+
+
+def track_update(
+    prior_nodes_k3: np.ndarray,
+    surface_n3: np.ndarray,
+    *,
+    radius: float,
+    rng: np.random.Generator,
+    reaches: tuple[float, ...] = TRACKER_REACHES,
+) -> np.ndarray:
+    """The tracker's update (K, 3): the prior chain pulled to the visible rope, once per reach.
+
+    Each pass is `tracked_centreline` from the previous pass's chain: a point takes the mean of
+    the visible surface points within ``reach`` x 2 cm of it at its height (the other strand at a
+    crossing, a diameter away, never pulls; a hidden point keeps its place plus sensor noise),
+    then the chain is smoothed; only the part of each move across the chain is kept. One 2 cm
+    pass was the best of those tried on training starts (longer or more passes pull a chain
+    across to the wrong strand more often than they correct it).
+    """
+    nodes = np.asarray(prior_nodes_k3, dtype=float)
+    for reach in reaches:
+        pulled = tracked_centreline(nodes, surface_n3, radius=radius, rng=rng, reach=reach)[0::2]
+        tangent = np.gradient(nodes, axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        move = pulled - nodes
+        # Points say where the rope is, not which part of it: a pull along the chain is no
+        # evidence (near an end it is only the missing points beyond the end pulling inwards),
+        # so only the part across the chain moves it.
+        move -= np.einsum("ij,ij->i", move, tangent)[:, None] * tangent
+        nodes = nodes + move
+    return nodes
+
+
+class StateEstimator(Protocol):
+    """Estimates the rope's state in an episode, step by step."""
+
+    kind: EstimatorKind
+
+    def start(self, world: World, seed: int, model_world: World) -> None:
+        """A new episode begins in the world's current (start) state; the agent simulates in
+        ``model_world``."""
+        ...
+
+    def estimate(self, world: World) -> RopeEstimate:
+        """The estimate of the world's current rope (the world is only sensed, never changed)."""
+        ...
+
+    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
+        """The robot executed ``trajectory`` (None: nothing moved); carry the estimate along."""
+        ...
+
+
+class PerfectEstimator:
+    """The world's own full state: an oracle estimate (every result before model error)."""
+
+    kind = EstimatorKind.PERFECT
+
+    def start(self, world: World, seed: int, model_world: World) -> None:
+        """Nothing to initialise."""
+
+    def estimate(self, world: World) -> RopeEstimate:
+        """The world's snapshot and nodes, error 0."""
+        return RopeEstimate(world.rope_nodes(), world.snapshot(), 0.0)
+
+    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
+        """Nothing to carry: the next estimate reads the world again."""
+
+
+@dataclass
+class TrackingEstimator:
+    """A rope tracker that carries its own estimate through each executed trajectory."""
+
+    noise: float = TRACKER_NOISE  # m, per-coordinate camera noise
+    drift: float = TRACKER_DRIFT  # m per step, xy random-walk of the whole estimate
+    kind: EstimatorKind = EstimatorKind.TRACKER
+
+    def __post_init__(self) -> None:
+        for name in ("noise", "drift"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"tracker {name} must be finite and >= 0, got {value}")
+        self._rng = np.random.default_rng(0)
+        self._prior: np.ndarray | None = None
+        self._radius = 0.0
+        self._length = 1.0
+        self._last: np.ndarray | None = None
+        self._offset = np.zeros(3)
+
+    def start(self, world: World, seed: int, model_world: World) -> None:
+        """Initialise on the start rope (uncrossed, at rest): its true chain is the prior."""
+        self._rng = np.random.default_rng(seed)
+        # The tracker knows the rope as the agent's model does: its radius and length.
+        self._radius = model_world.params.radius
+        self._length = model_world.params.length
+        self._prior = world.rope_nodes()
+        self._last = None
+        self._offset = np.zeros(3)
+
+    def estimate(self, world: World) -> RopeEstimate:
+        """The prior pulled to this step's camera cloud, smoothed, plus the drift so far."""
+        if self._prior is None:
+            raise InvalidInputError("the tracker was not started on this episode's rope")
+        rng = self._rng
+        surface = world.observe(max_points=_TRACKER_POINTS, voxel=_TRACKER_VOXEL)
+        surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
+        nodes = track_update(self._prior, surface, radius=self._radius, rng=rng)
+        self._offset[:2] += rng.normal(0.0, self.drift, size=2)
+        nodes = nodes + self._offset
+        self._last = nodes
+        return RopeEstimate(nodes, None, node_error_mm(nodes, world.rope_nodes()))
+
+    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
+        """Predict: the last estimate simulated through ``trajectory`` in the agent's model."""
+        if self._last is None or trajectory is None:
+            return
+        place_estimate(model_world, RopeEstimate(self._last))
+        result = model_world.execute(trajectory)
+        predicted = model_world.rope_nodes()
+        if result.failure_kind is not None and not np.all(np.isfinite(predicted)):
+            predicted = self._last  # the model blew up: keep the last estimate as the prior
+        self._prior = predicted
+
+
+def make_estimator(kind: EstimatorKind | str) -> StateEstimator:
+    """A fresh estimator of ``kind`` (one per episode worker; `start` resets it per episode)."""
+    kind = EstimatorKind.parse(kind)
+    if kind is EstimatorKind.TRACKER:
+        return TrackingEstimator()
+    return PerfectEstimator()
