@@ -281,3 +281,50 @@ def test_settling_until_at_rest_ends_like_the_fixed_time_settle() -> None:
     assert all(n < full for n in loose[1])  # the early stop does fire when the rope allows it
     np.testing.assert_allclose(default[2], fixed[2], atol=0.03)
     np.testing.assert_allclose(loose[2], fixed[2], atol=0.03)
+
+
+def _sliding_deceleration(box_friction: float, plane_friction: float) -> float:
+    """Deceleration / g of a box sliding on a plane, each body with its own friction."""
+    from knotlab.core.world.sim import p
+
+    cid = p.connect(p.DIRECT)
+    try:
+        p.setGravity(0, 0, -9.81, physicsClientId=cid)
+        plane = p.createMultiBody(
+            0, p.createCollisionShape(p.GEOM_PLANE, physicsClientId=cid), physicsClientId=cid
+        )
+        p.changeDynamics(plane, -1, lateralFriction=plane_friction, physicsClientId=cid)
+        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.05] * 3, physicsClientId=cid)
+        box = p.createMultiBody(1, shape, basePosition=[0, 0, 0.05], physicsClientId=cid)
+        p.changeDynamics(
+            box, -1, lateralFriction=box_friction, linearDamping=0, physicsClientId=cid
+        )
+        for _ in range(20):
+            p.stepSimulation(physicsClientId=cid)
+        p.resetBaseVelocity(box, [2, 0, 0], physicsClientId=cid)
+        for _ in range(24):
+            p.stepSimulation(physicsClientId=cid)
+        speed = p.getBaseVelocity(box, physicsClientId=cid)[0][0]
+    finally:
+        p.disconnect(cid)
+    return (2 - speed) / (0.1 * 9.81)
+
+
+def test_pybullet_combines_two_bodies_friction_as_their_product() -> None:
+    # What lets RopeParams set rope-on-table and rope-on-rope friction apart (mismatch.py).
+    assert _sliding_deceleration(0.4, 0.8) == pytest.approx(_sliding_deceleration(0.8, 0.4))
+    assert _sliding_deceleration(0.4, 0.8) == pytest.approx(_sliding_deceleration(1.0, 0.32))
+    assert _sliding_deceleration(0.5, 0.5) < _sliding_deceleration(0.4, 0.8)
+
+
+def test_table_friction_is_the_tables_own_and_defaults_to_the_ropes() -> None:
+    from knotlab.core.world.sim import p
+
+    with RopeWorld(RopeParams(table_friction=0.3)) as world:
+        world.settle(0.01)
+        assert p.getDynamicsInfo(0, -1, physicsClientId=world._client)[1] == pytest.approx(0.3)
+    with RopeWorld() as world:
+        world.settle(0.01)
+        assert p.getDynamicsInfo(0, -1, physicsClientId=world._client)[1] == pytest.approx(0.8)
+    with pytest.raises(InvalidInputError, match="table_friction"):
+        RopeParams(table_friction=-1.0)
