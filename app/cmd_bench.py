@@ -22,6 +22,7 @@ from knotlab.app.options import (
     load_library,
     load_task_set,
     number,
+    reads,
     task_set_file,
 )
 from knotlab.core.jsonsafe import json_safe
@@ -308,22 +309,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"
     )
-    p.add_argument(
-        "--world-params",
-        type=physics_setting,
-        default="nominal",
-        metavar="NAME|FILE.json",
-        help="the physics of the world that executes: nominal, FACTOR+PCT or FACTOR-PCT (e.g. "
-        "mass+25, table_friction-50), combinedPCT (every factor drawn per task within +-PCT, "
-        "seeded by --seed and the task), or a JSON file of rope/gripper values (default nominal)",
+    reads(
+        p.add_argument(
+            "--world-params",
+            type=physics_setting,
+            default="nominal",
+            metavar="NAME|FILE.json",
+            help="the physics of the world that executes: nominal, FACTOR+PCT or FACTOR-PCT (e.g. "
+            "mass+25, table_friction-50), combinedPCT (every factor drawn per task within +-PCT, "
+            "seeded by --seed and the task), or a JSON file of rope/gripper values "
+            "(default nominal)",
+        )
     )
-    p.add_argument(
-        "--model-params",
-        type=physics_setting,
-        default="nominal",
-        metavar="NAME|FILE.json",
-        help="the physics the agent simulates with (lookahead, oracle, the tracker's "
-        "prediction), same forms (default nominal)",
+    reads(
+        p.add_argument(
+            "--model-params",
+            type=physics_setting,
+            default="nominal",
+            metavar="NAME|FILE.json",
+            help="the physics the agent simulates with (lookahead, oracle, the tracker's "
+            "prediction), same forms (default nominal)",
+        )
     )
     p.add_argument(
         "--estimator",

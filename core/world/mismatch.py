@@ -247,9 +247,11 @@ def parse_setting(text: str, *, seed: int = 0) -> PhysicsSetting:
         scale_factor(NOMINAL, factor, scale)  # refuse an impossible world now, not per task
         return PhysicsSetting(name, factor=factor, scale=scale)
     path = Path(name)
-    if path.suffix == ".json":
+    if path.suffix or "/" in name:  # a path, not a name
         if not path.is_file():
             raise InvalidInputError(f"physics file {path} does not exist")
+        if path.suffix != ".json":
+            raise InvalidInputError(f"physics file {path}: expected a .json file")
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError) as exc:
