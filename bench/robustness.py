@@ -15,7 +15,9 @@ Usage:
   .venv/bin/python bench/robustness.py report --out-dir results/robustness_main
 
 Settings: nominal, tracker, combinedPCT, FACTOR+PCT / FACTOR-PCT, familiesPCT (every factor at
-+-PCT). Rerun the same command to resume; a setting's folder refuses other arguments.
++-PCT), and WORLD:known (a control: that world with an agent model that is its own physics, so
+what is left of a loss is the world being unlike the demos'). Rerun the same command to resume;
+a setting's folder refuses other arguments.
 """
 
 from __future__ import annotations
@@ -80,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
             arguments={"study": "robustness", "setting": setting.name, "argv": sys.argv},
             share_simulations=True,
             world=parse_setting(setting.world, seed=args.seed),
+            agent_model=parse_setting(setting.agent_model, seed=args.seed),
             estimator=setting.estimator,
         )
         print(

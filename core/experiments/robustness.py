@@ -29,6 +29,9 @@ class StudySetting:
     name: str  # the results folder's name, e.g. "combined25", "mass-50", "tracker"
     world: str  # a physics setting name (`mismatch.parse_setting`)
     estimator: EstimatorKind = EstimatorKind.PERFECT
+    # The agent's model: "nominal", or the world's own setting (a control: the same world with a
+    # model that knows it, so what is left of a loss is the world being unlike the demos').
+    agent_model: str = "nominal"
 
     @property
     def factor(self) -> MismatchFactor | None:
@@ -45,14 +48,19 @@ class StudySetting:
 
 
 def parse_study_settings(text: str) -> list[StudySetting]:
-    """Settings from a comma list: nominal, tracker, combinedPCT, FACTOR+PCT, FACTOR-PCT, or
-    familiesPCT (every factor at +PCT and -PCT where that is a possible world)."""
+    """Settings from a comma list: nominal, tracker, combinedPCT, FACTOR+PCT, FACTOR-PCT,
+    familiesPCT (every factor at +PCT and -PCT where that is a possible world), or any world
+    followed by ``:known`` (the agent's model is that world's own physics: a control)."""
     out: list[StudySetting] = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
             continue
         if item == "tracker":
             out.append(StudySetting("tracker", "nominal", EstimatorKind.TRACKER))
+        elif item.endswith(":known"):
+            world = item.removesuffix(":known")
+            parse_setting(world)
+            out.append(StudySetting(f"{world}_known", world, agent_model=world))
         elif item.startswith("families"):
             try:
                 pct = float(item.removeprefix("families"))
@@ -138,7 +146,7 @@ def worst_factors(rows: Sequence[PairedRow]) -> dict[str, tuple[str, float]]:
         try:
             factor = parse_setting(row.setting).factor
         except InvalidInputError:
-            continue  # the tracker
+            continue  # the tracker, a control
         if factor is None or row.n == 0:
             continue
         if row.policy not in worst or row.change_points < worst[row.policy][1]:
