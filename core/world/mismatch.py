@@ -119,7 +119,10 @@ def scale_factor(params: PhysicsParams, factor: MismatchFactor, scale: float) ->
         elif factor is MismatchFactor.RADIUS:
             rope = replace(rope, radius=rope.radius * scale)
         elif factor is MismatchFactor.LENGTH:
-            rope = replace(rope, length=rope.length * scale)
+            # 40 links of a shorter rope are shorter than its diameter: thinned to fit them.
+            length = rope.length * scale
+            fit = 0.5 * length / rope.n_links * (1 - 1e-9)
+            rope = replace(rope, length=length, radius=min(rope.radius, fit))
         elif factor is MismatchFactor.GRASP_REACH:
             grip = replace(grip, grasp_radius=grip.grasp_radius * scale)
         elif factor is MismatchFactor.GRIP_FORCE:

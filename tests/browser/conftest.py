@@ -36,6 +36,21 @@ CHROMIUM_ARGS = [
 ]
 
 
+# The floating control panel: the widest ancestor of its title that is still panel-sized.
+PANEL_BOX_JS = """() => {
+  const title = Array.from(document.querySelectorAll('*')).find(
+    (el) => el.childElementCount === 0
+      && el.textContent.trim() === 'knotlab: label demonstrations');
+  let box = null;
+  for (let el = title; el && el !== document.body; el = el.parentElement) {
+    const r = el.getBoundingClientRect();
+    if (r.width > 500) break;
+    box = {x: r.x, y: r.y, width: r.width, height: r.height};
+  }
+  return box;
+}"""
+
+
 def pytest_collection_modifyitems(config, items) -> None:
     """Mark every test here `browser`; skip them when the browser stack is missing."""
     try:
@@ -51,6 +66,17 @@ def pytest_collection_modifyitems(config, items) -> None:
             item.add_marker(pytest.mark.xdist_group("browser"))  # one worker: shares the CPU
             if missing:
                 item.add_marker(pytest.mark.skip(reason=f"{missing} not installed"))
+
+
+def keep_shot(page, name: str) -> bytes:
+    """A screenshot of the page (PNG), also saved as NAME.png when KNOTLAB_SCREENSHOTS names a
+    folder."""
+    png = page.screenshot()
+    folder = os.environ.get("KNOTLAB_SCREENSHOTS")
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        (Path(folder) / f"{name}.png").write_bytes(png)
+    return png
 
 
 def wait_until(pred: Callable[[], object], timeout: float = 20.0, what: str = "condition"):
@@ -76,6 +102,7 @@ def app_args(db_url: str, **over) -> argparse.Namespace:
         port=0,
         top=5,
         sim_workers=1,  # one try process: the suite shares two cores with another worker
+        token=None,  # loopback: no access token asked
     )
     args.update(over)
     return argparse.Namespace(**args)
@@ -185,21 +212,32 @@ class Tab:
 
         return wait_until(settled, timeout, "the camera to settle")
 
-    def click_world(self, point_3: np.ndarray) -> None:
-        """Click where a world point appears on the canvas (camera from the browser)."""
+    def project(self, points_p3: np.ndarray) -> np.ndarray:
+        """Where world points appear on the page (pixels, P x 2), by the browser's camera once
+        it has settled; a point behind the camera fails the test."""
         cam = self.settled_camera()
         import viser.transforms as tf
 
         world_from_cam = tf.SE3.from_rotation_and_translation(
             tf.SO3(np.asarray(cam.wxyz)), np.asarray(cam.position)
         )
-        p = world_from_cam.inverse() @ np.asarray(point_3, float)
-        assert p[2] > 0, "point is behind the camera"
-        xy = p[:2] / p[2] / np.tan(cam.fov / 2)
-        xy[0] /= cam.aspect
-        u, v = (1 + xy) / 2
+        p = np.asarray(points_p3, float).reshape(-1, 3)
+        q = np.stack([world_from_cam.inverse() @ x for x in p])
+        assert (q[:, 2] > 0).all(), "a point is behind the camera"
+        xy = q[:, :2] / q[:, 2:] / np.tan(cam.fov / 2)
+        xy[:, 0] /= cam.aspect
+        uv = (1 + xy) / 2
         box = self.page.locator("canvas").nth(1).bounding_box()
-        self.page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
+        return np.c_[box["x"] + uv[:, 0] * box["width"], box["y"] + uv[:, 1] * box["height"]]
+
+    def click_world(self, point_3: np.ndarray) -> None:
+        """Click where a world point appears on the canvas (camera from the browser)."""
+        ((u, v),) = self.project(np.asarray(point_3, float)[None])
+        self.page.mouse.click(u, v)
+
+    def panel_box(self) -> dict:
+        """The side panel's box on the page (x, y, width, height), measured in the browser."""
+        return self.page.evaluate(PANEL_BOX_JS)
 
 
 def open_tab(

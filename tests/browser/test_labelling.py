@@ -293,13 +293,18 @@ def test_inspect_shows_the_three_policies_plot_and_registration(tabs):
     page.get_by_text("The search tree").scroll_into_view_if_needed()
     tab.screenshot("inspect_tree")
     page.locator("label", has_text="Show A's registration in 3D").click()
-    wait_until(lambda: _scene_has(page, "/inspect/warped"), 10, "registration drawn")
-    assert _scene_has(page, "/inspect/correspondence")
+    wait_until(lambda: _scene_has(page, "/inspect/registration/warped"), 10, "registration drawn")
+    assert _scene_has(page, "/inspect/registration/correspondence")
     assert tab.server_tab.drawer.label_root.visible is False  # labelling view hidden meanwhile
     tab.screenshot("inspect")
     page.locator("label", has_text="Show A's registration in 3D").click()
-    wait_until(lambda: not _scene_has(page, "/inspect/warped"), 10, "registration hidden")
-    assert tab.server_tab.drawer.label_root.visible is True
+    wait_until(
+        lambda: not _scene_has(page, "/inspect/registration/warped"), 10, "registration hidden"
+    )
+    assert _scene_has(page, "/inspect/rope")  # the inspected state stays until Back
+    page.get_by_role("button", name="Back to the labelling view").click()
+    wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "the labelling view back")
+    wait_until(lambda: not _scene_has(page, "/inspect/rope"), 10, "the inspected rope gone")
 
 
 def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root, tmp_path):

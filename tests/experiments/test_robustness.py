@@ -24,9 +24,8 @@ def test_settings_parse_names_families_the_tracker_and_controls():
     assert by_name["mass-10"].level == pytest.approx(0.1)
     assert by_name["combined25"].level == 0.25
     families = [s for s in settings if s.factor is not None and s.name != "mass-10"]
-    # Every factor at +-25 %, but a rope 25 % thicker: its diameter would reach its link length.
-    assert len(families) == 2 * len(MismatchFactor) - 1
-    assert "radius+25" not in by_name and "radius-25" in by_name
+    assert len(families) == 2 * len(MismatchFactor)  # +-25 % is a possible world for each
+    assert "length-25" in by_name and "radius+25" in by_name
     with pytest.raises(InvalidInputError, match="unknown physics setting"):
         parse_study_settings("combined25,heavy")
     with pytest.raises(InvalidInputError, match="no study settings"):

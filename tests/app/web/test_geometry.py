@@ -6,9 +6,12 @@ import numpy as np
 import trimesh
 
 from knotlab.app.web.geometry import (
+    camera_rotation,
+    frame_points,
     pick_candidate,
     pick_marker,
     pick_polyline,
+    project,
     ray_polyline_distance,
     tube_faces,
     tube_vertices,
@@ -66,3 +69,19 @@ def test_a_click_on_a_marker_beats_a_path_passing_in_front_of_it():
     # Beside every marker: the nearest path within reach, else nothing.
     assert pick_candidate(np.array([0.7, 0.01, 1]), down, markers, lines) == 3
     assert pick_candidate(np.array([0.7, 0.5, 1]), down, markers, lines) is None
+
+
+def test_framing_puts_every_point_inside_the_box_and_touches_its_edge():
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-0.3, -0.2, 0.0], [0.4, 0.3, 0.3], (500, 3))
+    forward, up, fov, size = np.array([0.0, 0.75, -0.65]), np.array([0.0, 0, 1]), 1.3, (1280, 760)
+    box = (24.0, 24.0, 857.0, 736.0)  # left of an 400 px side panel
+    position, look_at = frame_points(points, forward, up, fov, size, box)
+    rotation = camera_rotation(look_at - position, up)
+    assert np.allclose(rotation[:, 2], forward / np.linalg.norm(forward))  # the view kept
+    uv = project(points, rotation, position, fov, size)
+    assert (uv[:, 0] >= box[0] - 1e-6).all() and (uv[:, 0] <= box[2] + 1e-6).all()
+    assert (uv[:, 1] >= box[1] - 1e-6).all() and (uv[:, 1] <= box[3] + 1e-6).all()
+    # As close as they fit: some point is on the box's edge.
+    gap = np.min(np.abs(np.concatenate([uv - box[:2], uv - box[2:]])))
+    assert gap < 1e-3

@@ -1,0 +1,398 @@
+"""What the labeller sees: a camera that frames each new state clear of the side panel, full
+captions only for the selected candidate, the tried path alone after a try, every tab of a
+browser framed, a palette apart from the rope, the warped demo cloud visible, no stale texts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from knotlab.app.web.scene import candidate_label
+from knotlab.app.web.session import Phase
+from tests.browser.conftest import keep_shot, open_tab, wait_until
+from tests.browser.test_labelling import _scene_has
+
+
+def _scene_node(page, name: str) -> dict | None:
+    """A scene node's message in the browser (None: not there)."""
+    return json.loads(
+        page.evaluate(
+            "(n) => JSON.stringify((window.__viserSceneTree.getState()[n] || {}).message || null)",
+            name,
+        )
+    )
+
+
+def _candidate_points(view) -> tuple[np.ndarray, np.ndarray]:
+    """(every candidate's markers, every candidate's path points) of a state."""
+    markers, paths = [], []
+    for c in view.candidates:
+        markers += [np.asarray(p) for p in (*c.grasp_points, *c.release_points)]
+        for g in range(2):
+            if c.closed_gt[g].any():
+                paths.append(np.asarray(c.positions_gt3[g]))
+    return np.array(markers), np.concatenate(paths)
+
+
+def assert_framed(tab, what: str, shot: str) -> None:
+    """Every candidate's markers and paths project inside the canvas, left of the side panel,
+    and with the rope fill a fair part of that space (not a few pixels in the middle)."""
+    view = tab.session.view()
+    markers, paths = _candidate_points(view)
+    wait_until(lambda: tab.server_tab.ready.is_set(), 20, "the state drawn")
+    panel = tab.panel_box()
+    tab.settled_camera()
+    keep_shot(tab.page, shot)
+    canvas = tab.page.locator("canvas").nth(1).bounding_box()
+    assert panel is not None and panel["width"] < 500, panel
+    for name, pts in (("marker", markers), ("path point", paths)):
+        uv = tab.project(pts)
+        inside = (
+            (uv[:, 0] >= canvas["x"])
+            & (uv[:, 0] <= panel["x"])
+            & (uv[:, 1] >= canvas["y"])
+            & (uv[:, 1] <= canvas["y"] + canvas["height"])
+        )
+        assert inside.all(), f"{what}: {np.sum(~inside)} {name}s off screen or under the panel"
+    # The selected candidate's caption (centred on its anchor) is clear of the panel too.
+    from knotlab.app.web.scene import TEXT_PX_PER_CHAR, badge_text, label_anchor
+
+    chosen = next(c for c in view.candidates if c.ranked.rank == view.selected)
+    ((u, _v),) = tab.project(label_anchor(chosen, view)[None])
+    half = TEXT_PX_PER_CHAR * len(badge_text(chosen, view)) / 2
+    assert canvas["x"] <= u - half and u + half <= panel["x"], f"{what}: the caption is cut"
+    uv = tab.project(np.concatenate([markers, paths, view.rope_nodes_k3]))
+    spread = np.ptp(uv, axis=0) / (panel["x"] - canvas["x"], canvas["height"])
+    assert spread.max() > 0.5, f"{what}: the candidates fill only {spread} of the free view"
+
+
+def test_each_new_state_frames_every_candidate_clear_of_the_panel(tabs, app):
+    tab = tabs("fra")
+    assert_framed(tab, "the first state", "framed_first")
+    first = tab.session.view().task_id
+    tab.press("r")  # another rope
+    wait_until(lambda: tab.session.view().task_id != first, 30, "a new rope")
+    assert_framed(tab, "a new rope", "framed_new_rope")
+    for _ in range(app.resources.top_k):  # accept the first candidate that executes
+        tab.press("Enter")
+        wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 60, "the try")
+        if tab.session.view().last_try.acceptable:
+            break
+        tab.press("n")
+        wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
+    tab.press("y")
+    wait_until(lambda: tab.session.view().step_index == 1, 30, "the next state")
+    assert_framed(tab, "step 2", "framed_step2")
+
+
+def test_only_the_selected_candidate_has_a_full_caption_the_rest_rank_badges(tabs):
+    tab = tabs("cap")
+    tab.press("3")
+    wait_until(lambda: tab.session.view().selected == 3, 10, "rank 3 selected")
+    view = tab.session.view()
+
+    def texts() -> dict[int, str]:
+        out = {}
+        for c in view.candidates:
+            node = _scene_node(tab.page, f"/label/candidates/{c.ranked.rank}/label")
+            out[c.ranked.rank] = "" if node is None else node["props"]["text"]
+        return out
+
+    want = {
+        c.ranked.rank: candidate_label(c) if c.ranked.rank == 3 else f"#{c.ranked.rank}"
+        for c in view.candidates
+    }
+    wait_until(lambda: texts() == want, 10, f"captions {want}")
+    keep_shot(tab.page, "captions")
+
+
+def test_after_a_try_only_the_tried_path_is_drawn(tabs, app):
+    tab = tabs("tri")
+    tab.press("2")
+    wait_until(lambda: tab.session.view().selected == 2, 10, "rank 2 selected")
+    tab.press("Enter")
+    wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 60, "the try")
+    others = [r for r in range(1, app.resources.top_k + 1) if r != 2]
+    wait_until(
+        lambda: not any(_scene_has(tab.page, f"/label/candidates/{r}") for r in others),
+        10,
+        "the other candidates hidden",
+    )
+    assert _scene_has(tab.page, "/label/candidates/2/label")
+    keep_shot(tab.page, "after_try")
+    tab.press("n")  # back to choosing: every candidate again
+    wait_until(lambda: _scene_has(tab.page, "/label/candidates/3/label"), 10, "all shown again")
+
+
+def test_a_second_tab_of_the_same_browser_starts_framed(browser, app):
+    first = open_tab(browser, app, "two")
+    context = first.context
+    try:
+        before = {t.client.client_id for t in app.tabs()}
+        page = context.new_page()  # same browser: it remembers the name, and offers a take-over
+        page.goto(app.url)
+        page.get_by_role("button", name="Take it over").click(timeout=30_000)
+        server_tab = wait_until(
+            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
+            30,
+            "the second tab",
+        )
+        wait_until(lambda: server_tab.ready.is_set(), 30, "the second tab's state")
+        from tests.browser.conftest import Tab
+
+        second = Tab(page, context, server_tab, [])
+        assert_framed(second, "the second tab", "second_tab")
+    finally:
+        context.close()
+
+
+def _inspect(tab, source: str, number: int = 0):
+    """Inspect a state from the Inspect tab; the loaded view."""
+    panel = tab.server_tab.inspect
+    tab.page.get_by_role("tab", name="Inspect").click()
+    panel.source.value = source
+    panel.index.value = number
+    before = tab.server_tab.inspector.view
+    tab.page.get_by_role("button", name="Inspect", exact=True).click()
+    return wait_until(
+        lambda: (v := tab.server_tab.inspector.view) is not before and v, 60, "the inspected state"
+    )
+
+
+def test_inspect_draws_the_state_it_inspects_and_labelling_draws_its_own_again(tabs, app):
+    tab = tabs("ins")
+    page = tab.page
+    view = _inspect(tab, "test task", 3)
+    assert view.label == "test task 3"
+    # The 3D view shows test task 3's rope (placed at rest from its start), not the labelling one.
+    assert np.abs(view.nodes_k3 - app.start_nodes("test", 3)).max() < 0.02
+    assert np.abs(view.nodes_k3 - tab.session.view().rope_nodes_k3).max() > 0.05
+    wait_until(lambda: _scene_has(page, "/inspect/rope"), 10, "the inspected rope drawn")
+    wait_until(lambda: not tab.server_tab.drawer.label_root.visible, 10, "labelling hidden")
+    uv = tab.project(view.nodes_k3)
+    panel = tab.panel_box()
+    assert (uv[:, 0] > 0).all() and (uv[:, 0] < panel["x"]).all(), "the rope is framed"
+    assert (uv[:, 1] > 0).all() and (uv[:, 1] < 760).all()
+    keep_shot(page, "inspect_test_task_3")
+    page.get_by_role("button", name="Back to the labelling view").click()
+    wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "the labelling view")
+    wait_until(lambda: not _scene_has(page, "/inspect/rope"), 10, "the inspected rope gone")
+    assert_framed(tab, "back from Inspect", "back_from_inspect")
+    # A labelling key also brings the labelling view back.
+    _inspect(tab, "training start", 5)
+    wait_until(lambda: _scene_has(page, "/inspect/rope"), 10, "the inspected rope drawn")
+    tab.press("2")
+    wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "the labelling view")
+    wait_until(lambda: not _scene_has(page, "/inspect/rope"), 10, "the inspected rope gone")
+
+
+PLOT_JS = """() => {
+  const imgs = Array.from(document.querySelectorAll('img')).filter((i) => i.offsetParent);
+  const big = imgs.sort((a, b) => b.naturalWidth - a.naturalWidth)[0];
+  if (!big) return null;
+  const r = big.getBoundingClientRect();
+  return {width: r.width, height: r.height, natural: big.naturalWidth};
+}"""
+
+
+def test_contributions_plot_reads_at_panel_width_costs_have_a_heading_and_a_legend(tabs):
+    from knotlab.app.web.inspect_panel import PLOT_DPI, PLOT_FONT_PT
+
+    tab = tabs("plo")
+    page = tab.page
+    _inspect(tab, "current labelling state")
+    panel = tab.server_tab.inspect
+    wait_until(lambda: panel.plot.image.shape[0] > 100, 30, "the contribution bar plot")
+    page.get_by_text("Registration costs").scroll_into_view_if_needed()
+    shown = wait_until(
+        lambda: (b := page.evaluate(PLOT_JS)) and b["natural"] == panel.plot.image.shape[1] and b,
+        20,
+        "the plot in the page",
+    )
+    box = tab.panel_box()
+    assert shown["width"] > 0.85 * box["width"], f"the plot is {shown} in a {box} panel"
+    text_px = PLOT_FONT_PT * PLOT_DPI / 72 * shown["width"] / shown["natural"]
+    assert text_px >= 10, f"feature names are {text_px:.1f} px tall on screen"
+    assert panel.compare.content.startswith("**Registration costs**")
+    keep_shot(page, "inspect_plot")
+    page.locator("label", has_text="Show A's registration in 3D").click()
+    legend = page.get_by_text("A's demo cloud warped onto this rope")
+    legend.wait_for(timeout=10_000)
+    legend.scroll_into_view_if_needed()
+    wait_until(lambda: _scene_has(page, "/inspect/registration/warped"), 10, "registration")
+    # The camera frames the rope and both clouds, left of the panel.
+    view = tab.server_tab.inspector.view
+    reg = tab.server_tab.inspector.registration(panel._picked()[0])
+    uv = tab.project(np.concatenate([view.nodes_k3, reg.demo_cloud_n3, reg.warped_n3]))
+    box = tab.panel_box()
+    assert (uv[:, 0] > 0).all() and (uv[:, 0] < box["x"]).all(), "framed left of the panel"
+    assert (uv[:, 1] > 0).all() and (uv[:, 1] < 760).all(), "framed top to bottom"
+    keep_shot(page, "inspect_legend")
+
+
+def _status(tab) -> str:
+    return tab.server_tab.panels.status.content
+
+
+def test_a_new_rope_after_a_dead_end_says_nothing_about_the_old_rope(tabs):
+    tab = tabs("ded")
+    tab.press("Enter")
+    wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 60, "the try")
+    tab.press("f")
+    wait_until(lambda: "stored a dead end" in _status(tab), 20, "the dead end said")
+    first = tab.session.view().task_id
+    tab.press("r")
+    wait_until(lambda: tab.session.view().task_id != first, 30, "a new rope")
+    new = tab.session.view().task_id
+    wait_until(lambda: "task `" + new in _status(tab), 10, "the new status")
+    assert "dead end" not in _status(tab)
+
+    def page_text() -> str:
+        return tab.page.locator("body").inner_text()
+
+    wait_until(lambda: new in page_text(), 10, "the new rope in the page")
+    wait_until(lambda: "dead end" not in page_text(), 5, "no word of the old rope's dead end")
+
+
+def test_the_name_prompt_is_not_shown_over_connecting(browser, app):
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        page = context.new_page()
+        page.goto(app.url)
+        page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
+        wait_until(lambda: "waiting for your name" in page.locator("body").inner_text(), 20, "st")
+        assert "Connecting..." not in page.locator("body").inner_text()
+        keep_shot(page, "name_prompt")
+    finally:
+        context.close()
+
+
+def _pixels_near(png: bytes, rgb: tuple[int, int, int], tol: int = 40) -> int:
+    """How many pixels of a screenshot are within ``tol`` of a colour (each channel)."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
+    return int((np.abs(img - np.asarray(rgb)).max(axis=2) <= tol).sum())
+
+
+def test_the_warped_demo_cloud_shows_over_the_rope(tabs):
+    from knotlab.app.web.scene import rank_colour
+
+    tab = tabs("war")
+    tab.press("3")  # sky blue: no other candidate's colour, nor the rope's or the cloud's
+    wait_until(lambda: tab.session.view().selected == 3, 10, "rank 3 selected")
+    tab.settled_camera()
+    tab.page.wait_for_timeout(500)
+    before = _pixels_near(tab.page.screenshot(), rank_colour(3))
+    tab.page.locator("label", has_text="Show warped demo cloud").click()
+    wait_until(lambda: _scene_has(tab.page, "/label/warped"), 10, "the warped cloud")
+    tab.page.wait_for_timeout(800)
+    after = _pixels_near(keep_shot(tab.page, "warped_cloud"), rank_colour(3))
+    assert after - before > 1500, f"the warped cloud adds {after - before} pixels of its colour"
+
+
+def test_a_tab_whose_episode_was_taken_over_disables_new_rope_and_undo(browser, app):
+    first = open_tab(browser, app, "ovr")
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        page = context.new_page()
+        before = {t.client.client_id for t in app.tabs()}
+        page.goto(app.url)
+        second = wait_until(
+            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
+            30,
+            "the second tab",
+        )
+        field = (
+            page.locator("label", has_text="Your name")
+            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+            .locator("input:not([type='hidden'])")
+        )
+        field.fill("ovr")
+        page.get_by_role("button", name="Start labelling").click()
+        page.get_by_role("button", name="Take it over").click(timeout=20_000)
+        wait_until(lambda: second.ready.is_set(), 30, "the episode in the second tab")
+        first.page.get_by_text("taken over in another tab").wait_for(timeout=20_000)
+        for name in ("New rope (R)", "Undo last label (U)", "Try (Enter)"):
+            button = first.button(name)
+            wait_until(lambda b=button: b.is_disabled(), 10, f"{name} disabled")
+        panels = first.server_tab.panels
+        assert all(command.disabled for command in panels.commands)  # the hotkeys too
+        episode = second.session.episode.episode_id
+        first.press("r")
+        first.press("u")
+        first.page.wait_for_timeout(500)
+        assert second.session.episode.episode_id == episode
+        assert app.store.episode(episode).status not in ("abandoned", "completed")
+        keep_shot(first.page, "taken_over")
+    finally:
+        context.close()
+        first.context.close()
+
+
+def test_a_lost_server_shows_a_banner(browser, tmp_path):
+    from tests.browser.conftest import start_app
+
+    own = start_app(f"sqlite:///{tmp_path / 'gone.db'}")
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        tab = open_tab(browser, own, "off", context=context)
+        banner = tab.page.get_by_role("alert").filter(has_text="server is not reachable")
+        assert not banner.is_visible()
+        own.stop()
+        banner.wait_for(state="visible", timeout=20_000)
+        box = banner.bounding_box()
+        assert box["width"] > 600 and box["y"] < 5, f"the banner is {box}"  # across the top
+        keep_shot(tab.page, "offline")
+    finally:
+        context.close()
+        own.stop()
+        own.store.close()
+
+
+def test_suggest_shows_progress_and_cancel_stops_it(tabs, app):
+    tab = tabs("sug")
+    page = tab.page
+    panels = tab.server_tab.panels
+    page.get_by_role("tab", name="Model").click()
+    page.get_by_role("button", name="Suggest what to label next").click()
+    wait_until(lambda: "scoring start 3 of" in panels.suggest_status.content, 60, "progress")
+    assert panels.suggest_bar.visible and 0 < panels.suggest_bar.value < 100
+    keep_shot(page, "suggest_progress")
+    page.get_by_role("button", name="Cancel suggesting").click()
+    wait_until(lambda: "cancelled after" in panels.suggest_status.content, 10, "the cancel")
+    assert not app._suggesting and not panels.suggest_bar.visible
+    status = panels.suggest_status.content
+    page.wait_for_timeout(1000)
+    assert panels.suggest_status.content == status  # stopped: no more progress reports
+    assert not panels.suggest_button.disabled  # and it can be started again
+    page.get_by_text("cancelled after").wait_for(timeout=10_000)
+    keep_shot(page, "suggest_cancelled")
+
+
+def test_the_lookahead_search_shows_progress_and_cancel_leaves_the_app_usable(tabs):
+    tab = tabs("sea")
+    page = tab.page
+    view = _inspect(tab, "current labelling state")
+    panel = tab.server_tab.inspect
+    wait_until(lambda: "Registration costs" in panel.compare.content, 30, "the panel filled")
+    page.get_by_role("button", name="Run lookahead(2, 5)").click()
+    # The candidates can still be compared while it searches (the search holds the simulator).
+    panel.cand_a.value = panel.cand_a.options[2]
+    wait_until(lambda: f"`{panel.cand_a.options[2]}`" in panel.compare.content, 10, "A changed")
+    wait_until(lambda: view.search_expansions >= 1, 120, "the first expansion")
+    assert "expansions so far" in panel.search_status.content
+    keep_shot(page, "search_progress")
+    page.get_by_role("button", name="Cancel the search").click()
+    wait_until(lambda: view.search_cancelled, 60, "the search to stop")
+    assert view.search_progress == 1.0 and view.choices.lookahead is None
+    assert view.search_expansions < 10  # it stopped before the whole search
+    wait_until(lambda: "search cancelled" in panel.search_status.content, 10, "said")
+    assert not panel.search_button.disabled
+    keep_shot(page, "search_cancelled")
+    # The app stays usable: the labeller's try runs on the same simulation workers.
+    tab.press("Enter")
+    wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 90, "a try after the cancel")
