@@ -22,7 +22,7 @@ from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 
-PolicyKind = Literal["nn", "greedy", "lookahead", "oracle"]
+PolicyKind = Literal["nn", "greedy", "lookahead", "robust", "oracle"]
 
 
 def _best_of(scores_a: np.ndarray) -> Decision:
@@ -112,6 +112,8 @@ class PolicyConfig:
     simulates: bool  # simulates candidates at every step (slow: lookahead, oracle)
     depth: int = 0
     width: int = 0
+    members: int = 0  # robust lookahead: models in the ensemble
+    aggregate: str = ""  # robust lookahead: "mean" or "min" over the members
 
     def build(self, model: QModel | None = None) -> Policy:
         """The policy object; a learned one needs ``model``."""
@@ -123,10 +125,18 @@ class PolicyConfig:
             return SimulationOraclePolicy()
         if self.kind == "greedy":
             return GreedyPolicy(model)
+        assert model is not None
+        if self.kind == "robust":
+            from knotlab.core.selection.robust import RobustLookaheadPolicy
+
+            return RobustLookaheadPolicy(
+                model, self.depth, self.width, self.members, self.aggregate
+            )
         return LookaheadPolicy(model, self.depth, self.width)
 
 
 _LOOKAHEAD_NAME = re.compile(r"la([1-9][0-9]*)x([1-9][0-9]*)")
+_ROBUST_NAME = re.compile(r"rla([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)(min)?")
 _FIXED_POLICIES = {
     "nn": PolicyConfig("nn", "nn", needs_model=False, simulates=False),
     "greedy": PolicyConfig("greedy", "greedy", needs_model=True, simulates=False),
@@ -135,13 +145,20 @@ _FIXED_POLICIES = {
 
 
 def policy_config(name: str) -> PolicyConfig:
-    """The config of a policy name: nn, greedy, la<depth>x<width> (e.g. la2x5) or oracle."""
+    """The config of a policy name: nn, greedy, la<depth>x<width> (e.g. la2x5), the robust
+    lookahead rla<depth>x<width>k<members>[min] (e.g. rla2x5k2) or oracle."""
     if name in _FIXED_POLICIES:
         return _FIXED_POLICIES[name]
+    robust = _ROBUST_NAME.fullmatch(name)
+    if robust is not None:
+        depth, width, members = (int(robust.group(i)) for i in (1, 2, 3))
+        aggregate = "min" if robust.group(4) else "mean"
+        return PolicyConfig(name, "robust", True, True, depth, width, members, aggregate)
     match = _LOOKAHEAD_NAME.fullmatch(name)
     if match is None:
         raise InvalidInputError(
-            f"unknown policy {name!r}; expected nn, greedy, la<D>x<W> (e.g. la2x5) or oracle"
+            f"unknown policy {name!r}; expected nn, greedy, la<D>x<W> (e.g. la2x5), "
+            "rla<D>x<W>k<K>[min] (e.g. rla2x5k2) or oracle"
         )
     depth, width = int(match.group(1)), int(match.group(2))
     return PolicyConfig(name, "lookahead", True, True, depth, width)

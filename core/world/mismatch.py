@@ -218,13 +218,20 @@ def combined_scales(level: float, seed: int) -> dict[str, float]:
 
 def combined_params(level: float, seed: int) -> PhysicsParams:
     """The nominal world with every factor scaled by `combined_scales`."""
+    return perturb_params(NOMINAL, level, seed)
+
+
+def perturb_params(base: PhysicsParams, level: float, seed: int) -> PhysicsParams:
+    """``base`` with every factor scaled by `combined_scales` (the radius capped to fit)."""
     scales = combined_scales(level, seed)
+    cap = _largest_valid_radius_scale(base) * scales[MismatchFactor.LENGTH.value] * (1 - 1e-9)
+    scales[MismatchFactor.RADIUS.value] = min(scales[MismatchFactor.RADIUS.value], cap)
     # Each step is checked as a rope: a radius too thick for the nominal links needs the longer
     # links first; otherwise the radius goes first (a shorter rope may need it thinner first).
-    thick = scales[MismatchFactor.RADIUS.value] > _largest_valid_radius_scale(NOMINAL)
+    thick = scales[MismatchFactor.RADIUS.value] > _largest_valid_radius_scale(base)
     first = MismatchFactor.LENGTH if thick else MismatchFactor.RADIUS
     order = sorted(scales, key=lambda name: name != first.value)
-    params = NOMINAL
+    params = base
     for name in order:
         params = scale_factor(params, MismatchFactor(name), scales[name])
     return params
