@@ -54,6 +54,7 @@ _TRACKER_POINTS = 1000
 # shifted 2 cm sideways 0.029): a rope that moved off its prediction further than a pull reaches.
 REGISTER_ABOVE = 0.02
 TRACKER_DRIFT = 0.001  # m per step, standard deviation of the drift's xy random walk
+_MAX_HEIGHT_RADII = 8.0  # an estimated node higher than this many rope radii is placed there
 
 
 class EstimatorKind(StrEnum):
@@ -116,9 +117,13 @@ def place_estimate(model_world: World, estimate: RopeEstimate) -> None:
     ):
         model_world.restore(state if state.params == params else replace(state, params=params))
         return
+    # Heights within what a rope on a table can have (a knot stacks a few diameters): a warped
+    # estimate may put a node under the table or in the air, and only xy is scaled below.
+    nodes = np.array(estimate.nodes_k3, dtype=float)
+    nodes[:, 2] = np.clip(nodes[:, 2], params.radius, _MAX_HEIGHT_RADII * params.radius)
     # Evenly spaced first: an estimate's noise makes uneven segments that no rope of equal
     # links could lie along.
-    nodes = resample_by_arc_length(estimate.nodes_k3, params.n_links + 1)
+    nodes = resample_by_arc_length(nodes, params.n_links + 1)
     if abs(rope_length(nodes) - params.length) > 1e-9 * params.length:
         nodes = scale_xy_to_length(nodes, params.length)
     model_world.reset(nodes)
@@ -262,6 +267,7 @@ class TrackingEstimator:
         surface = world.observe(max_points=_TRACKER_POINTS, voxel=_TRACKER_VOXEL)
         surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
         nodes = track_update(self._prior, surface, radius=self._radius, rng=rng)
+        nodes[:, 2] = np.clip(nodes[:, 2], 0.0, _MAX_HEIGHT_RADII * self._radius)
         self._offset[:2] += rng.normal(0.0, self.drift, size=2)
         nodes = nodes + self._offset
         self._last = nodes
