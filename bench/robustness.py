@@ -118,6 +118,20 @@ def _rows(args: argparse.Namespace) -> tuple[list[PairedRow], dict[str, dict], l
     return rows, tracker, names
 
 
+def _model_error_rows(args: argparse.Namespace) -> list[PairedRow]:
+    """Each world run with the nominal model, paired with its ``<world>_known`` control."""
+    out = Path(args.out_dir)
+    rows = []
+    for control in sorted(out.glob("*_known")):
+        world = out / control.name.removesuffix("_known")
+        here, known = _outcomes(world / "outcomes.jsonl"), _outcomes(control / "outcomes.jsonl")
+        for policy in sorted(known, key=lambda p: ORDER.index(p) if p in ORDER else 99):
+            if policy in here:
+                recs = list(here[policy].values())
+                rows.append(paired_row(world.name, policy, recs, known[policy]))
+    return rows
+
+
 def report(args: argparse.Namespace) -> int:
     """Print the comparison table, write summary.json and the plot."""
     rows, tracker, names = _rows(args)
@@ -135,6 +149,23 @@ def report(args: argparse.Namespace) -> int:
             f"[{100 * lo:.1f}, {100 * hi:.1f}] | {100 * r.matched_rate:.1f} % | "
             f"{r.change_points:+.1f} | {r.lost} | {r.gained} | {r.p_value:.3g} |"
         )
+    controls = _model_error_rows(args)
+    if controls:
+        print(
+            "\nModel error alone: each world with the nominal model against the same world with "
+            "a model that knows it (the control), on the tasks both ran:\n"
+        )
+        print(
+            "| world | policy | n | nominal model | model that knows it | change | lost | gained "
+            "| p |"
+        )
+        print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+        for r in controls:
+            print(
+                f"| {r.setting} | {r.policy} | {r.n} | {100 * r.rate:.1f} % | "
+                f"{100 * r.matched_rate:.1f} % | {r.change_points:+.1f} | {r.lost} | {r.gained} | "
+                f"{r.p_value:.3g} |"
+            )
     worst = worst_factors(rows)
     if worst:
         print("\nThe single factor that costs each policy most:")
@@ -156,6 +187,9 @@ def report(args: argparse.Namespace) -> int:
                 "change_points": r.change_points,
             }
             for r in rows
+        ],
+        "model_error": [
+            {**r.__dict__, "rate": r.rate, "control_rate": r.matched_rate} for r in controls
         ],
         "worst_factor": {p: {"setting": s, "points": v} for p, (s, v) in worst.items()},
         "tracker_error": tracker,
