@@ -132,6 +132,26 @@ def _model_error_rows(args: argparse.Namespace) -> list[PairedRow]:
     return rows
 
 
+def _robust_rows(args: argparse.Namespace) -> list[PairedRow]:
+    """Each robust lookahead rla<D>x<W>k.. in ``--robust-dir/<setting>`` against the plain
+    lookahead la<D>x<W> in ``--out-dir/<setting>``, on the tasks both ran."""
+    import re
+
+    rows: list[PairedRow] = []
+    robust_dir = getattr(args, "robust_dir", None)  # `run` reports without it
+    if not robust_dir or not Path(robust_dir).is_dir():
+        return rows
+    for folder in sorted(p for p in Path(robust_dir).iterdir() if p.is_dir()):
+        robust = _outcomes(folder / "outcomes.jsonl")
+        plain = _outcomes(Path(args.out_dir) / folder.name / "outcomes.jsonl")
+        for policy, recs in robust.items():
+            match = re.fullmatch(r"rla(\d+)x(\d+)k\d+(min)?", policy)
+            if match and f"la{match[1]}x{match[2]}" in plain:
+                base = plain[f"la{match[1]}x{match[2]}"]
+                rows.append(paired_row(folder.name, policy, list(recs.values()), base))
+    return rows
+
+
 def report(args: argparse.Namespace) -> int:
     """Print the comparison table, write summary.json and the plot."""
     rows, tracker, names = _rows(args)
@@ -166,6 +186,17 @@ def report(args: argparse.Namespace) -> int:
                 f"{100 * r.matched_rate:.1f} % | {r.change_points:+.1f} | {r.lost} | {r.gained} | "
                 f"{r.p_value:.3g} |"
             )
+    robust = _robust_rows(args)
+    if robust:
+        print("\nThe robust lookahead against the plain one, same world, same tasks:\n")
+        print("| world | policy | n | robust | plain | change | lost | gained | p |")
+        print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+        for r in robust:
+            print(
+                f"| {r.setting} | {r.policy} | {r.n} | {100 * r.rate:.1f} % | "
+                f"{100 * r.matched_rate:.1f} % | {r.change_points:+.1f} | {r.lost} | {r.gained} | "
+                f"{r.p_value:.3g} |"
+            )
     worst = worst_factors(rows)
     if worst:
         print("\nThe single factor that costs each policy most:")
@@ -190,6 +221,9 @@ def report(args: argparse.Namespace) -> int:
         ],
         "model_error": [
             {**r.__dict__, "rate": r.rate, "control_rate": r.matched_rate} for r in controls
+        ],
+        "robust_vs_plain": [
+            {**r.__dict__, "rate": r.rate, "plain_rate": r.matched_rate} for r in robust
         ],
         "worst_factor": {p: {"setting": s, "points": v} for p, (s, v) in worst.items()},
         "tracker_error": tracker,
@@ -242,6 +276,12 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("run", "report"):
         p = sub.add_parser(name)
         p.add_argument("--out-dir", default=str(ROOT / "results" / "robustness_main"))
+        if name == "report":
+            p.add_argument(
+                "--robust-dir",
+                default=str(ROOT / "results" / "robustness_robust_main"),
+                help="a study folder of robust lookaheads (rla...) to pair with --out-dir's la...",
+            )
         p.add_argument(
             "--matched",
             default=str(ROOT / "results" / "table1_shared_main"),
