@@ -165,3 +165,25 @@ def test_bad_physics_flags_get_one_line_and_write_nothing(files, tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert message in err[-1]
     assert not out.exists()
+
+
+def test_one_candidate_in_the_model_and_in_another_world_side_by_side():
+    from knotlab.core.execution.compare import outcome_in_model_and_world
+    from knotlab.core.world.mismatch import parse_setting
+
+    agent = Agent(mini_library(2), None, "nn")
+    task = mini_tasks(1)[0]
+    heavy = parse_setting("table_friction-50").params_for(task.task_id)
+    with RopeWorld() as model, RopeWorld() as same, RopeWorld(heavy.rope, heavy.gripper) as other:
+        model.reset(task.start_nodes_k3)
+        cloud = agent.observe(model)
+        action = agent.choose(model).action
+        twin = outcome_in_model_and_world(
+            task.start_nodes_k3, cloud, action, agent.transferer, model, same
+        )
+        assert twin.apart_mm == 0.0 and twin.agree  # the same physics: the same outcome
+        apart = outcome_in_model_and_world(
+            task.start_nodes_k3, cloud, action, agent.transferer, model, other
+        )
+        assert apart.apart_mm > 1.0  # a slipperier table: the dragged rope ends elsewhere
+        assert np.array_equal(apart.model.nodes_after_k3, twin.model.nodes_after_k3)
