@@ -48,7 +48,7 @@ import numpy as np  # noqa: E402
 
 from knotlab.app import defaults  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.selection.acquisition import rank_for_labelling, score_state  # noqa: E402
 from knotlab.core.selection.labels import LabelledExecution  # noqa: E402
 from knotlab.core.selection.learner import TrainingData  # noqa: E402
@@ -378,6 +378,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "runs" / "active_learning" / "curve.png"))
     ap.add_argument("--json", action="store_true", help="print the summary as JSON last")
     args = ap.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     args.seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     if args.step < 1 or args.max_labels < args.step:
         print("active_learning: error: need 1 <= --step <= --max-labels", file=sys.stderr)

@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from knotlab.core.machine import machine_line
 from knotlab.core.selection.labels import LabelledExecution, LabelledStep
 from knotlab.labeling_db.store import StateProvenance, open_store
 
@@ -115,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-pg", action="store_true", help="SQLite only")
     ap.add_argument("--json", action="store_true", help="also print one JSON object, last line")
     args = ap.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     kw = {"n_labels": args.labels, "n_single": args.single, "n_points": args.points,
           "repeats": args.repeats}  # fmt: skip
     results: dict[str, dict] = {}

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from knotlab.core.machine import machine_line
 from knotlab.core.parallel import default_workers, imap_processes
 from knotlab.core.tasks.overhand.expert import ExpertStyle, run_expert, sample_start_rope
 
@@ -78,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     args = ap.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     jobs = [
         _Job(amp, i, args.seed + i, 1 if i % 2 == 0 else -1, args.max_attempts, args.max_restarts)
         for amp in args.amplitudes

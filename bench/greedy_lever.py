@@ -43,6 +43,7 @@ from knotlab.core.agent import Agent  # noqa: E402
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
 from knotlab.core.experiments.bench import wilson_interval  # noqa: E402
+from knotlab.core.machine import machine_line  # noqa: E402
 from knotlab.core.parallel import PerProcess, imap_processes  # noqa: E402
 from knotlab.core.selection.learner import MaxMarginQLearner  # noqa: E402
 from knotlab.core.selection.model_selection import (  # noqa: E402
@@ -198,6 +199,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     variants = [v for v in args.variants.split(",") if v]
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:

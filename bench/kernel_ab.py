@@ -70,6 +70,9 @@ def main() -> None:
     parser.add_argument("--base", default="HEAD", help="git revision of the 'before' kernel")
     parser.add_argument("--repeats", type=int, default=25)
     args = parser.parse_args()
+    from knotlab.core.machine import machine_line
+
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     before = subprocess.run(
         ["git", "show", f"{args.base}:{KERNEL}"], cwd=ROOT, capture_output=True, text=True
     )

@@ -24,7 +24,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.machine import cpu_model, machine_line  # noqa: E402
 from knotlab.core.world.knot import analyse_knot  # noqa: E402
 from knotlab.core.world.rope import resample_by_arc_length  # noqa: E402
 
@@ -64,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     res = measure(args.repeats)
     print(
         f"machine: {res['cpu_model']}, {res['cpu_count']} cores; python {res['python']}, "

@@ -28,6 +28,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from knotlab.core.machine import machine_line  # noqa: E402
 from knotlab.core.selection.learner import LabelledState, MaxMarginQLearner, TrainingData  # noqa: E402
 
 N_STEPS = 3  # demo steps per execution (the overhand knot)
@@ -133,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--library", default=None, help="use real scans of this library's clouds")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
 
     scan_s = None
     if args.library:

@@ -28,7 +28,7 @@ from knotlab.core.demos.generation import GenSettings, generate_library  # noqa:
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
 from knotlab.core.experiments.bench import run_bench, wilson_interval  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.world.observation import ObservationModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,6 +66,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", action="store_true", help="also print the rows as JSON")
     args = ap.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tasks = TaskSet.load(defaults.task_set_path("main", "train"))

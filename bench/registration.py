@@ -24,7 +24,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.machine import cpu_model, machine_line  # noqa: E402
 from knotlab.core.registration import (  # noqa: E402
     EXACT,
     SCAN,
@@ -283,6 +283,7 @@ def main() -> None:
         help="where --scaling writes its plot",
     )
     args = parser.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     warnings.simplefilter("ignore", RuntimeWarning)
     rng = np.random.default_rng(2024)
     machine = {

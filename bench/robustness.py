@@ -35,6 +35,7 @@ from knotlab.core.experiments.robustness import (
     parse_study_settings,
     worst_factors,
 )
+from knotlab.core.machine import machine_line
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ("nn", "greedy", "la1x10", "la2x5", "oracle")
@@ -297,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--workers", type=int, default=None)
             p.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     if args.cmd == "run":
         parse_study_settings(args.settings)  # a bad name fails before any work
         if args.tasks < 1 or not math.isfinite(args.tasks):

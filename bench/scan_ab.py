@@ -116,6 +116,10 @@ def main() -> None:
     if args.child:
         child(args.repeats, workers, args.chunk, args.outputs)
         return
+    # The parent only: a child may run an older revision's core, without this function.
+    from knotlab.core.machine import machine_line
+
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
 
     with tempfile.TemporaryDirectory(prefix="scan_ab_") as tmp_name:
         tmp = Path(tmp_name)

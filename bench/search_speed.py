@@ -37,7 +37,7 @@ from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import TaskSet  # noqa: E402
 from knotlab.core.experiments.bench import BenchWorker, WorkerSpec, episode_seed  # noqa: E402
 from knotlab.core.experiments.episode import run_episode  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.registration import library_scan, planner  # noqa: E402
 from knotlab.core.selection import features as features_mod  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
@@ -266,6 +266,7 @@ def main() -> None:
     )
     parser.add_argument("--json", action="store_true", help="also print one JSON object last")
     args = parser.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     if args.starts < 1:
         raise SystemExit("--starts must be >= 1")
     library = DemoLibrary.load(args.library)

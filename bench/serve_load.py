@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from knotlab.core.agent import Agent  # noqa: E402
 from knotlab.core.arrays import cloud_digest  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.tasks import get_task  # noqa: E402
 from knotlab.core.world.sim import RopeWorld  # noqa: E402
 from tests.service.conftest import start_service, stop_service  # noqa: E402
@@ -71,6 +71,7 @@ def main() -> int:
     ap.add_argument("--url", default=None, help="a running service (default: start one)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
 
     agent = Agent.default("greedy")
     pool_n = args.baseline + 400

@@ -47,7 +47,7 @@ from knotlab.core.execution import apply as apply_mod  # noqa: E402
 from knotlab.core.execution import expansion as expansion_mod  # noqa: E402
 from knotlab.core.execution import memo as memo_mod  # noqa: E402
 from knotlab.core.experiments.bench import BenchWorker, WorkerSpec  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -105,6 +105,7 @@ def main() -> None:
     parser.add_argument("--library", default=str(defaults.LIBRARY_PATH))
     parser.add_argument("--json", action="store_true", help="also print one JSON object last")
     args = parser.parse_args()
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     if args.starts < 1:
         raise SystemExit("--starts must be >= 1")
     names = args.policies.split(",")

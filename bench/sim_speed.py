@@ -24,7 +24,7 @@ from importlib import metadata  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from knotlab.core.machine import cpu_model  # noqa: E402
+from knotlab.core.machine import cpu_model, machine_line  # noqa: E402
 from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence  # noqa: E402
 from knotlab.core.world.knot import is_overhand_knot  # noqa: E402
 from knotlab.core.world.rope import straight_rope  # noqa: E402
@@ -122,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    print(f"machine: {machine_line()}")  # every figure names its CPU kind
     res = measure(args.repeats)
     print(
         f"machine: {res['cpu_model']}, {res['cpu_count']} cores; python {res['python']}, "

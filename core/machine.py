@@ -1,4 +1,5 @@
-"""Where a measurement was taken: CPU model, usable cores, load, BLAS kernels, Python, platform."""
+"""Where a measurement was taken: CPU model and vector width, usable cores, load, BLAS kernels,
+Python, platform."""
 
 from __future__ import annotations
 
@@ -16,6 +17,37 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown"
+
+
+def vector_width() -> str:
+    """The widest x86 vector extension the CPU has: "avx512", "avx2", else "no avx2".
+
+    Speed figures differ by several times between AVX-512 and AVX2 machines (the registration
+    kernel's vector loops), so every figure names it.
+    """
+    try:
+        flags = next(
+            (
+                line
+                for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("flags")
+            ),
+            "",
+        ).split()
+    except OSError:
+        return "unknown"
+    if "avx512f" in flags:
+        return "avx512"
+    return "avx2" if "avx2" in flags else "no avx2"
+
+
+def machine_line() -> str:
+    """One line naming where a figure was measured: 'AMD EPYC (avx512), 2 cores, load 0.5'."""
+    try:
+        load = f", load {os.getloadavg()[0]:.1f}"
+    except OSError:
+        load = ""
+    return f"{cpu_model()} ({vector_width()}), {usable_cores()} cores{load}"
 
 
 def usable_cores() -> int:
@@ -50,6 +82,7 @@ def machine_info() -> dict:
         load = None
     return {
         "cpu_model": cpu_model(),
+        "vector_width": vector_width(),
         "cpu_count": os.cpu_count(),
         "usable_cores": usable_cores(),
         "load_average_1m": load,
