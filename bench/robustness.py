@@ -260,10 +260,11 @@ def _plot(rows: list[PairedRow], path: Path) -> None:
             ms.append(100 * row.matched_rate)
         ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2, label=policy)
         ax.scatter(xs, ms, marker="_", s=120, color="black", zorder=3)
-    ax.set_xticks(range(len(settings)), settings, rotation=20)
+    counts = {s: max((r.n for r in rows if r.setting == s), default=0) for s in settings}
+    ax.set_xticks(range(len(settings)), [f"{s}\n(n={counts[s]})" for s in settings], rotation=0)
     ax.set_ylabel("success within 5 steps (%)")
     ax.set_ylim(0, 105)
-    ax.set_title("Policies on worlds unlike their model (black tick: the matched world)")
+    ax.set_title("Worlds unlike the agent's model (black tick: the matched world)", fontsize=10)
     ax.legend(ncol=len(policies), fontsize=8, loc="lower left")
     fig.tight_layout()
     fig.savefig(path)
