@@ -128,7 +128,24 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         lite_rendering=lite_rendering,
         sim_workers=args.sim_workers,
         test_tasks_path=defaults.task_set_path(level, "test", task),
+        token=access_token(args),
     )
+
+
+TOKEN_ENV = "KNOTLAB_TOKEN"
+
+
+def access_token(args: argparse.Namespace) -> str | None:
+    """The access token of the app or the service: --token, else $KNOTLAB_TOKEN, else (on a
+    host other than loopback) one generated and printed; None on loopback without one."""
+    import os
+    import secrets
+
+    token = args.token or os.environ.get(TOKEN_ENV) or None
+    if token is None and args.host not in LOOPBACK:
+        token = secrets.token_urlsafe(24)
+        print(f"generated an access token (pass --token to choose one): {token}", flush=True)
+    return token
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -136,8 +153,8 @@ def _run(args: argparse.Namespace) -> int:
     check_host(args.host, args.port)  # before the store, the resources and the server
     if args.host not in LOOPBACK:
         print(
-            f"warning: serving on {args.host}: anyone who can reach this machine on that "
-            "network can label with your database",
+            f"warning: serving on {args.host}: anyone on that network who has the access "
+            "token can label with your database",
             file=sys.stderr,
         )
     # Ctrl-C interrupts the start-up too (exit 130), even in a process that inherited SIGINT
@@ -158,7 +175,8 @@ def _run(args: argparse.Namespace) -> int:
         sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
     }
     # Only now announce the URL: whoever reads it may press Ctrl-C at once.
-    print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops)", flush=True)
+    asked = "; the access token is asked once per browser" if app.token else ""
+    print(f"knotlab app: labelling at {app.url}  (Ctrl-C stops{asked})", flush=True)
     try:
         while not stop.is_set():
             time.sleep(0.2)
@@ -189,7 +207,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         detail="a stored model version or a model file, made the active one (default: the "
         "store's active model; a new store starts with the task's shipped default)",
     )
-    add_flag(p, "--host", default="127.0.0.1", detail="they can label with your database")
+    add_flag(p, "--host", default="127.0.0.1", detail="any other host needs an access token")
+    add_flag(p, "--token", detail="each browser gives it once")
     add_flag(p, "--port", default=8080, detail="8080 unless given; a busy one: the next free")
     add_flag(
         p,

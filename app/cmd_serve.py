@@ -10,16 +10,13 @@ printed).
 from __future__ import annotations
 
 import argparse
-import os
-import secrets
 import socket
 import sys
 from pathlib import Path
 
-from knotlab.app.cmd_app import LOOPBACK, check_host
+from knotlab.app.cmd_app import LOOPBACK, access_token, check_host
 from knotlab.app.options import add_flag, add_task_argument, integer, library_file, task_of
 
-TOKEN_ENV = "KNOTLAB_TOKEN"
 DEFAULT_PORT = 8090
 GRACEFUL_S = 3  # Ctrl-C: in-flight requests get this long, then the server stops regardless
 
@@ -41,12 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_flag(p, "--host", default="127.0.0.1", detail="any other host needs a token")
     add_flag(p, "--port", default=DEFAULT_PORT, detail=f"default {DEFAULT_PORT}")
-    p.add_argument(
-        "--token",
-        default=None,
-        help=f"bearer token every request must carry (default ${TOKEN_ENV}; required, and "
-        "generated when not given, for any host other than loopback)",
-    )
+    add_flag(p, "--token", detail="every request carries it as a bearer token")
     add_flag(p, "--workers", type=integer(1, maximum=64), detail="decision processes")
     p.set_defaults(func=run)
 
@@ -57,14 +49,6 @@ def _model_path(args: argparse.Namespace) -> Path | None:
     if args.model is not None and args.model.lower() == "none":
         return None
     return Path(args.model) if args.model else defaults.model_path(task_of(args))
-
-
-def _token(args: argparse.Namespace) -> str | None:
-    token = args.token or os.environ.get(TOKEN_ENV) or None
-    if token is None and args.host not in LOOPBACK:
-        token = secrets.token_urlsafe(24)
-        print(f"generated an access token (pass --token to choose one): {token}", flush=True)
-    return token
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from knotlab.core.world.observation import ObservationModel
 
     check_host(args.host, args.port)
-    token = _token(args)
+    token = access_token(args)
     config = ServiceConfig(Path(library_file(args)), _model_path(args), task_of(args))
     agent = load_agent(config)  # every compatibility check here, in one line, before workers
     info = ServiceInfo(

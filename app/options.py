@@ -294,6 +294,12 @@ _declare(
     metavar="HOST",
 )
 _declare("--port", "TCP port to serve on, 0-65535 (0: any free port)", type=PORT, metavar="PORT")
+_declare(
+    "--token",
+    "access token (default $KNOTLAB_TOKEN; required, and generated and printed when not given, "
+    "for any host other than loopback)",
+    metavar="TOKEN",
+)
 _declare("--out", "file to write", metavar="FILE")
 _declare("--out-dir", "folder to write into", metavar="DIR")
 

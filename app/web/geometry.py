@@ -12,6 +12,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+from scipy.optimize import linprog
 
 
 @lru_cache(maxsize=8)
@@ -147,3 +148,101 @@ def pick_candidate(
     """
     hit = pick_marker(origin_3, direction_3, markers)
     return hit if hit is not None else pick_polyline(origin_3, direction_3, polylines)
+
+
+# --------------------------------------------------------------------------- camera framing
+# Camera frames follow viser's (OpenCV) convention: x right, y down, z forward.
+
+
+def camera_rotation(forward_3: np.ndarray, up_3: np.ndarray) -> np.ndarray:
+    """The world-from-camera rotation (3, 3) of a camera looking along ``forward_3``, with
+    ``up_3`` up on screen (columns: right, down, forward)."""
+    z = np.asarray(forward_3, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    up = np.asarray(up_3, dtype=np.float64)
+    down = -(up - (up @ z) * z)
+    down = down / np.linalg.norm(down)
+    return np.stack([np.cross(down, z), down, z], axis=1)
+
+
+def project(
+    points_p3: np.ndarray,
+    rotation_33: np.ndarray,
+    position_3: np.ndarray,
+    fov: float,
+    size_px: tuple[int, int],
+) -> np.ndarray:
+    """Pixel coordinates (P, 2) of world points on a (width, height) canvas of vertical field
+    of view ``fov`` (rad); points behind the camera come out as NaN."""
+    w, h = size_px
+    q = (np.asarray(points_p3, dtype=np.float64) - position_3) @ rotation_33
+    t = np.tan(fov / 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = q[:, 0] / q[:, 2] / (t * w / h)
+        y = q[:, 1] / q[:, 2] / t
+    uv = np.stack([(1 + x) / 2 * w, (1 + y) / 2 * h], axis=1)
+    uv[q[:, 2] <= 0] = np.nan
+    return uv
+
+
+def frame_points(
+    points_p3: np.ndarray,
+    forward_3: np.ndarray,
+    up_3: np.ndarray,
+    fov: float,
+    size_px: tuple[int, int],
+    box_px: tuple[float, float, float, float] | np.ndarray,
+    near: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The closest camera (position, look-at point) looking along ``forward_3`` that shows every
+    point inside the pixel box (left, top, right, bottom) of the canvas; ``box_px`` is one box,
+    or one per point (P, 4), e.g. narrower for a point that carries text.
+
+    With the viewing direction fixed, "point p projects inside the box" is linear in the camera
+    position c' (camera frame): q = p' - c', s0 <= q_x / q_z <= s1 (and so for y) with q_z > 0
+    is s0 q_z <= q_x <= s1 q_z. So the closest such camera (largest c'_z) is a linear program.
+    The look-at point is on the view axis at the depth of the points' centre, so orbiting turns
+    about the content.
+    """
+    pts = np.asarray(points_p3, dtype=np.float64)
+    rot = camera_rotation(forward_3, up_3)
+    p = pts @ rot  # the points in camera axes (world origin)
+    w, h = size_px
+    left, top, right, bottom = np.broadcast_to(np.asarray(box_px, dtype=np.float64), (len(p), 4)).T
+    t = np.tan(fov / 2)
+    sx0, sx1 = (2 * left / w - 1) * t * w / h, (2 * right / w - 1) * t * w / h
+    sy0, sy1 = (2 * top / h - 1) * t, (2 * bottom / h - 1) * t
+    one, zero = np.ones(len(p)), np.zeros(len(p))
+    # Rows over (a, b, c) = c', each "<= rhs":
+    a_ub = np.concatenate(
+        [
+            np.c_[one, zero, -sx0 * one],  # q_x >= sx0 q_z
+            np.c_[-one, zero, sx1 * one],  # q_x <= sx1 q_z
+            np.c_[zero, one, -sy0 * one],  # q_y >= sy0 q_z
+            np.c_[zero, -one, sy1 * one],  # q_y <= sy1 q_z
+            np.c_[zero, zero, one],  # q_z >= near
+        ]
+    )
+    b_ub = np.concatenate(
+        [
+            p[:, 0] - sx0 * p[:, 2],
+            sx1 * p[:, 2] - p[:, 0],
+            p[:, 1] - sy0 * p[:, 2],
+            sy1 * p[:, 2] - p[:, 1],
+            p[:, 2] - near,
+        ]
+    )
+    res = linprog(
+        c=[0.0, 0.0, -1.0], A_ub=a_ub, b_ub=b_ub, bounds=[(None, None)] * 3, method="highs"
+    )
+    if not res.success:  # cannot happen for finite points (backing off always fits); say so
+        raise ValueError(f"no camera frames these {len(p)} points: {res.message}")
+    cam = np.asarray(res.x, dtype=np.float64)
+    # At that distance the sideways position is free within an interval per axis (the LP
+    # returns one of its ends, the content then hugs an edge): take each interval's middle.
+    q_z = p[:, 2] - cam[2]
+    cam[0] = (np.max(p[:, 0] - sx1 * q_z) + np.min(p[:, 0] - sx0 * q_z)) / 2
+    cam[1] = (np.max(p[:, 1] - sy1 * q_z) + np.min(p[:, 1] - sy0 * q_z)) / 2
+    depth = float(np.mean(p[:, 2]) - cam[2])
+    position = rot @ cam
+    return position, position + depth * rot[:, 2]

@@ -65,6 +65,12 @@ class InspectView:
     contributions: dict[int, list[Contribution]] = field(default_factory=dict)
     search_progress: float = 0.0  # 0..1 while the lookahead searches
     search_error: str | None = None
+    search_expansions: int = 0  # simulated so far
+    search_cancelled: bool = False
+
+
+class SearchCancelledError(Exception):
+    """Raised inside a lookahead search at its next expansion once it was cancelled."""
 
 
 class Inspector:
@@ -74,11 +80,13 @@ class Inspector:
         self.res = resources
         self.pool = pool  # lookahead levels simulated in parallel there, when given
         self.world = RopeWorld()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the simulator (a search holds it while it runs)
+        self._state_lock = threading.Lock()  # the loaded state: view, scan, ranking
         self.view: InspectView | None = None
         self._scan: ScanResult | None = None
         self._ranking: RankingModel | None = None
         self._search: threading.Thread | None = None
+        self._cancel = threading.Event()  # the running search's; set: stop at its next expansion
         self._generation = 0  # a newer load makes an older search's result stale
 
     def load(self, nodes_k3: np.ndarray, label: str) -> InspectView:
@@ -106,11 +114,12 @@ class Inspector:
                 nn=by_cost[0].demo_index if by_cost else 0,
                 greedy=ranked[0].demo_index if ranking.model is not None and ranked else None,
             )
-            self._scan, self._ranking, self._phi = scan, ranking, phi
-            self.view = InspectView(
+            view = InspectView(
                 label, nodes, cloud, ranked, nn_rank, choices, ranking.label, contributions
             )
-            return self.view
+            with self._state_lock:
+                self._scan, self._ranking, self._phi, self.view = scan, ranking, phi, view
+            return view
 
     def load_path(
         self, start_nodes_k3: np.ndarray, path: tuple[str, ...] | list[str], label: str
@@ -137,17 +146,24 @@ class Inspector:
             generation, phi = self._generation, self._phi
             snapshot = self.world.snapshot()
         budget = max(1, depth * width)
-        done = [0]
+        cancel = self._cancel = threading.Event()
+        view.search_progress, view.search_expansions = 0.0, 0
+        view.search_cancelled, view.search_error = False, None
 
         def counted() -> None:
-            done[0] += 1
-            view.search_progress = min(0.99, done[0] / budget)
+            """One expansion done: report it, or stop the search here if it was cancelled."""
+            if cancel.is_set():
+                raise SearchCancelledError
+            view.search_expansions += 1
+            view.search_progress = min(0.99, view.search_expansions / budget)
             on_update(view)
 
         def search() -> None:
             name = f"la{depth}x{width}"
+            runner = None
             if self.pool is not None:  # a level's expansions side by side in the workers
-                agent = ranking.agent.with_policy(name, runner=PoolRunner(self.pool, counted))
+                runner = PoolRunner(self.pool, counted)
+                agent = ranking.agent.with_policy(name, runner=runner)
                 transferer = agent.transferer
             else:
                 agent = ranking.agent.with_policy(name)
@@ -156,18 +172,25 @@ class Inspector:
             try:
                 with self._lock:
                     self.world.restore(snapshot)
-                    ctx = agent.context(self.world, view.cloud_n3)
-                    ctx.transferer = transferer
-                    ctx._phi_ad = phi
-                    decision = agent.policy.choose(ctx)
-                    self.world.restore(snapshot)
+                    try:
+                        ctx = agent.context(self.world, view.cloud_n3)
+                        ctx.transferer = transferer
+                        ctx._phi_ad = phi
+                        decision = agent.policy.choose(ctx)
+                    finally:
+                        self.world.restore(snapshot)
                 if generation != self._generation:
                     return
                 view.choices.lookahead = decision.action
                 view.choices.lookahead_name = agent.name
                 view.choices.lookahead_info = {**decision.info, "wall_s": time.perf_counter() - t0}
+            except SearchCancelledError:
+                view.search_cancelled = True
             except Exception as exc:  # shown in the panel; the inspector stays usable
                 view.search_error = f"{type(exc).__name__}: {exc}"
+            finally:
+                if runner is not None:  # expansions queued for later levels: nobody wants them
+                    runner.drop_prefetched()
             view.search_progress = 1.0
             on_update(view)
 
@@ -175,9 +198,16 @@ class Inspector:
         self._search.start()
         return True
 
+    def cancel_lookahead(self) -> bool:
+        """Stop the running search at its next expansion; False when none runs."""
+        if self._search is None or not self._search.is_alive():
+            return False
+        self._cancel.set()
+        return True
+
     def registration(self, demo_index: int) -> RegistrationView:
         """Demo cloud, its warp onto the scene, nearest-point pairs and the cost parts."""
-        with self._lock:
+        with self._state_lock:  # not the simulator's lock: a running search holds that one
             assert self._scan is not None and self.view is not None
             scan, cloud = self._scan, self.view.cloud_n3
         demo = self.res.library[demo_index]
@@ -194,6 +224,7 @@ class Inspector:
         )
 
     def close(self) -> None:
-        """Free the simulator."""
+        """Stop a search and free the simulator."""
+        self._cancel.set()
         with self._lock:
             self.world.close()

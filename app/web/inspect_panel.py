@@ -15,38 +15,74 @@ import viser
 
 from knotlab.app.web.geometry import tube_faces, tube_vertices
 from knotlab.app.web.inspect import Inspector, InspectView
+from knotlab.app.web.scene import CLOUD_COLOUR, ROPE_COLOUR, ROPE_RADIUS
 from knotlab.core.selection.explain import lookahead_tree, search_tree_lines
 
 log = logging.getLogger(__name__)
 SOURCES = ("current labelling state", "training start", "test task")
 N_BARS = 8  # feature contributions plotted per candidate
+SCENE_CLOUD = CLOUD_COLOUR
+DEMO_CLOUD = (150, 150, 150)
+WARPED_CLOUD = (0, 158, 115)
+PAIR_COLOUR = (230, 159, 0)
+
+
+# The bar plot is drawn at the panel's width (about 350 px on screen) at twice its pixels, one
+# candidate under the other, so that its text reads at about 12 px in the browser.
+PLOT_WIDTH_IN = 4.4
+PLOT_DPI = 160
+PLOT_FONT_PT = 11
+PLOT_ROW_IN = 2.9  # height per candidate
 
 
 def contribution_plot(view: InspectView, demos: list[int], keys: tuple[str, ...]) -> np.ndarray:
-    """A bar plot (RGB image) of the largest feature contributions of one or two candidates."""
+    """A bar plot (RGB image) of the largest feature contributions of one or two candidates,
+    one under the other, sized for the side panel."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from PIL import Image
 
-    fig, axes = plt.subplots(1, len(demos), figsize=(4.2 * len(demos), 3.0), squeeze=False)
-    for ax, a in zip(axes[0], demos, strict=True):
+    fig, axes = plt.subplots(
+        len(demos), 1, figsize=(PLOT_WIDTH_IN, PLOT_ROW_IN * len(demos)), squeeze=False
+    )
+    for ax, a in zip(axes[:, 0], demos, strict=True):
         parts = view.contributions.get(a, [])[:N_BARS][::-1]
         names = [p.name for p in parts]
         values = [p.contribution for p in parts]
         ax.barh(names, values, color=["#009e73" if v >= 0 else "#d55e00" for v in values])
         ax.axvline(0, color="k", lw=0.6)
         q = next((r.q for r in view.ranking if r.demo_index == a), None)
-        ax.set_title(f"{keys[a]}  Q = {q:.2f}" if q is not None else keys[a], fontsize=9)
-        ax.tick_params(labelsize=7)
-        ax.set_xlabel("weight x standardised feature", fontsize=7)
+        title = f"{keys[a]}  Q = {q:.2f}" if q is not None else keys[a]
+        ax.set_title(title, fontsize=PLOT_FONT_PT + 1)
+        ax.tick_params(labelsize=PLOT_FONT_PT)
+        ax.set_xlabel("weight x standardised feature", fontsize=PLOT_FONT_PT)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
+    fig.savefig(buf, format="png", dpi=PLOT_DPI)
     plt.close(fig)
     buf.seek(0)
     return np.asarray(Image.open(buf).convert("RGB"))
+
+
+def registration_legend() -> str:
+    """What each colour of the registration view is (HTML swatches in markdown)."""
+
+    def swatch(rgb: tuple[int, int, int], mark: str) -> str:
+        r, g, b = rgb
+        return f'<span style="color: rgb({r},{g},{b}); font-size: 1.2em">{mark}</span>'
+
+    return "  \n".join(
+        [
+            "**Registration view**",
+            f"{swatch(ROPE_COLOUR, '━')} the inspected rope",
+            f"{swatch(SCENE_CLOUD, '●')} its observed cloud",
+            f"{swatch(DEMO_CLOUD, '●')} A's demo cloud where it was recorded",
+            f"{swatch(WARPED_CLOUD, '◆')} A's demo cloud warped onto this rope",
+            f"{swatch(PAIR_COLOUR, '─')} each warped point to its nearest observed point",
+        ]
+    )
 
 
 class InspectPanel:
@@ -58,21 +94,31 @@ class InspectPanel:
         inspector: Inspector,
         current_nodes: Callable[[], np.ndarray | None],
         start_nodes: Callable[[str, int], np.ndarray],
-        set_label_visible: Callable[[bool], None],
+        enter_view: Callable[[], None],
+        frame: Callable[[np.ndarray], None],
+        back: Callable[[], None],
     ) -> None:
         self.client = client
         self.inspector = inspector
         self._current_nodes = current_nodes
         self._start_nodes = start_nodes
-        self._set_label_visible = set_label_visible
+        self._enter_view = enter_view  # the 3D view shows Inspect's state (others hidden)
+        self._frame = frame  # point the camera at these points
         self._lock = threading.Lock()
         gui = client.gui
         self.source = gui.add_dropdown("State", SOURCES)
         self.index = gui.add_number("Number", 0, min=0, step=1)
         self.inspect_button = gui.add_button("Inspect", icon=viser.Icon.SEARCH)
+        self.back_button = gui.add_button(
+            "Back to the labelling view", hint="the 3D view shows the inspected state until then"
+        )
         self.choices = gui.add_markdown("Pick a state and press Inspect.")
         self.search_button = gui.add_button("Run lookahead(2, 5)", disabled=True)
         self.search_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
+        self.search_status = gui.add_markdown("")
+        self.cancel_search_button = gui.add_button(
+            "Cancel the search", color="red", icon=viser.Icon.X, visible=False
+        )
         self.tree = gui.add_markdown("")
         self.table = gui.add_markdown("")
         self.cand_a = gui.add_dropdown("Candidate A", ("-",))
@@ -80,12 +126,15 @@ class InspectPanel:
         self.plot = gui.add_image(np.full((10, 10, 3), 255, np.uint8), label="Q contributions")
         self.compare = gui.add_markdown("")
         self.show_3d = gui.add_checkbox("Show A's registration in 3D", False)
+        self.legend = gui.add_markdown(registration_legend(), visible=False)
         self._keys_to_index: dict[str, int] = {}
         self.inspect_button.on_click(lambda _e: self.run_inspect())
+        self.back_button.on_click(lambda _e: back())
         self.search_button.on_click(lambda _e: self.run_search())
+        self.cancel_search_button.on_click(lambda _e: self.cancel_search())
         self.cand_a.on_update(lambda _e: self.show_candidates())
         self.cand_b.on_update(lambda _e: self.show_candidates())
-        self.show_3d.on_update(lambda _e: self.draw_3d())
+        self.show_3d.on_update(lambda _e: self.draw_3d(reframe=True))
 
     # ------------------------------------------------------------------ actions
     def run_inspect(self) -> None:
@@ -111,7 +160,9 @@ class InspectPanel:
     def _after_load(self, view: InspectView) -> None:
         self.search_button.disabled = view.choices.greedy is None
         self.search_bar.visible = False
+        self.search_status.content = ""
         self.tree.content = ""
+        self.draw_state(view)  # first: the 3D view shows what is inspected at once
         keys = self.inspector.res.library.keys
         options = tuple(keys[r.demo_index] for r in view.ranking)
         self._keys_to_index = {keys[r.demo_index]: r.demo_index for r in view.ranking}
@@ -121,7 +172,6 @@ class InspectPanel:
             self.cand_b.value = options[1]  # type: ignore[misc]
         self.show(view)
         self.show_candidates()
-        self.draw_3d()
 
     def inspect_nodes(self, nodes_k3: np.ndarray, label: str) -> None:
         """Explain the decision on a given rope (e.g. a step of a played-back episode)."""
@@ -150,17 +200,34 @@ class InspectPanel:
         self.show_candidates()
 
     def run_search(self) -> None:
-        """Start the lookahead search (progress and tree update as it runs)."""
-        self.search_bar.visible = True
-        self.search_bar.value = 0.0  # type: ignore[misc]
+        """Start the lookahead search (progress and tree update as it runs; it can be
+        cancelled)."""
         if not self.inspector.start_lookahead(2, 5, self._on_search):
-            self.tree.content = "a search is running already (or no model to search with)"
+            self.search_status.content = "a search is running already (or no model to search with)"
+            return
+        self.search_bar.value = 0.0  # type: ignore[misc]
+        self.search_bar.visible = True
+        self.search_status.content = "searching: 0 expansions so far"
+        self.cancel_search_button.visible = True
+        self.search_button.disabled = True
+
+    def cancel_search(self) -> None:
+        """Stop the running search (it ends at its next expansion; nothing of it is kept)."""
+        if self.inspector.cancel_lookahead():
+            self.search_status.content = "cancelling the search..."
 
     def _on_search(self, view: InspectView) -> None:
         self.search_bar.value = 100.0 * view.search_progress  # type: ignore[misc]
-        if view.search_progress >= 1.0:
-            self.search_bar.visible = False
-            self.show(view)
+        if view.search_progress < 1.0:
+            self.search_status.content = f"searching: {view.search_expansions} expansions so far"
+            return
+        self.search_bar.visible = False
+        self.cancel_search_button.visible = False
+        self.search_button.disabled = view.choices.greedy is None
+        self.search_status.content = (
+            "search cancelled: nothing of it is shown" if view.search_cancelled else ""
+        )
+        self.show(view)
 
     # ------------------------------------------------------------------ drawing
     def show(self, view: InspectView) -> None:
@@ -227,8 +294,13 @@ class InspectPanel:
             self.plot.image = contribution_plot(view, picked, keys)
         regs = [self.inspector.registration(a) for a in picked]
         names = ["map_fwd", "map_bwd", "bend_f", "bend_g", "residual_fwd_m", "residual_bwd_m"]
-        head = "| | " + " | ".join(f"`{r.demo_key}`" for r in regs) + " |"
-        rows = [head, "|---" * (len(regs) + 1) + "|"]
+        head = "| cost part | " + " | ".join(f"`{r.demo_key}`" for r in regs) + " |"
+        rows = [
+            "**Registration costs** of A and B onto this rope (not Q: lower fits better)",
+            "",
+            head,
+            "|---" * (len(regs) + 1) + "|",
+        ]
         for n in names:
             rows.append(
                 f"| {n} | " + " | ".join(f"{r.costs.get(n, np.nan):.4f}" for r in regs) + " |"
@@ -236,52 +308,74 @@ class InspectPanel:
         self.compare.content = "\n".join(rows)
         self.draw_3d()
 
-    def draw_3d(self) -> None:
-        """Draw (or hide) the inspected rope and candidate A's registration."""
+    def draw_state(self, view: InspectView) -> None:
+        """Draw the inspected rope and its cloud in place of the labelling view, framed."""
+        nodes = np.asarray(view.nodes_k3)
+        with self.client.atomic():
+            self._enter_view()
+            self.client.scene.add_mesh_simple(
+                "/inspect/rope",
+                tube_vertices(nodes, ROPE_RADIUS),
+                tube_faces(len(nodes), 12),
+                color=ROPE_COLOUR,
+            )
+            self.client.scene.add_point_cloud(
+                "/inspect/scene_cloud",
+                np.asarray(view.cloud_n3, np.float32),
+                SCENE_CLOUD,
+                point_size=0.008,
+                point_shape="circle",
+                precision="float32",
+            )
+        self._frame(np.concatenate([nodes, np.asarray(view.cloud_n3)]))
+
+    def draw_3d(self, *, reframe: bool = False) -> None:
+        """Draw (or hide) candidate A's registration over the inspected state; ``reframe``
+        points the camera at all of it."""
         scene = self.client.scene
         on = bool(self.show_3d.value)
-        self._set_label_visible(not on)
-        scene.remove_by_name("/inspect")
+        self.legend.visible = on
+        scene.remove_by_name("/inspect/registration")
         view = self.inspector.view
         picked = self._picked()
-        if not on or view is None or not picked:
+        if view is None or not picked:
+            return
+        nodes = np.asarray(view.nodes_k3)
+        # The rope half see-through while the registration is shown: the clouds lie on it.
+        scene.add_mesh_simple(
+            "/inspect/rope",
+            tube_vertices(nodes, ROPE_RADIUS),
+            tube_faces(len(nodes), 12),
+            color=ROPE_COLOUR,
+            opacity=0.5 if on else 1.0,
+        )
+        if not on:
+            if reframe:
+                self._frame(np.concatenate([nodes, np.asarray(view.cloud_n3)]))
             return
         reg = self.inspector.registration(picked[0])
         with self.client.atomic():
-            nodes = np.asarray(view.nodes_k3)
-            scene.add_mesh_simple(
-                "/inspect/rope",
-                tube_vertices(nodes, 0.01),
-                tube_faces(len(nodes), 12),
-                color=(196, 120, 60),
-                opacity=0.5,
-            )
             scene.add_point_cloud(
-                "/inspect/scene_cloud",
-                np.asarray(view.cloud_n3, np.float32),
-                (40, 90, 200),
-                point_size=0.008,
-                precision="float32",
-            )
-            scene.add_point_cloud(
-                "/inspect/demo_cloud",
+                "/inspect/registration/demo_cloud",
                 np.asarray(reg.demo_cloud_n3, np.float32),
-                (150, 150, 150),
+                DEMO_CLOUD,
                 point_size=0.007,
                 precision="float32",
             )
             scene.add_point_cloud(
-                "/inspect/warped",
+                "/inspect/registration/warped",
                 np.asarray(reg.warped_n3, np.float32),
-                (0, 158, 115),
+                WARPED_CLOUD,
                 point_size=0.009,
                 point_shape="diamond",
                 precision="float32",
             )
             scene.add_line_segments(
-                "/inspect/correspondence",
+                "/inspect/registration/correspondence",
                 np.asarray(reg.pairs_n23, np.float32),
-                (230, 159, 0),
+                PAIR_COLOUR,
                 thickness=1.5,
                 thickness_units="screen",
             )
+        if reframe:
+            self._frame(np.concatenate([nodes, reg.demo_cloud_n3, reg.warped_n3]))

@@ -23,6 +23,22 @@ if TYPE_CHECKING:
 
 MAX_LISTED = 9  # hotkeys 1-9 select by rank
 _UNSET = object()
+# A banner for a lost server. viser keeps the panel on screen when its websocket closes, only
+# dimmed and frozen (an inline style with "pointer-events: none" on the GUI's wrapper); this
+# element is inside that wrapper, so a CSS rule on that style shows it then, with no script.
+OFFLINE_TEXT = (
+    "The knotlab server is not reachable: nothing you do here is stored now. "
+    "This page reconnects by itself when the server is back."
+)
+OFFLINE_BANNER = f"""<style>
+.knotlab-offline {{ display: none; }}
+div[style*="pointer-events: none"] .knotlab-offline {{
+  display: block; position: fixed; top: 0; left: 0; right: 0; z-index: 1000;
+  padding: 0.8em 1em; background: #a61e1e; color: white; font-weight: bold;
+  text-align: center; font-size: 1.05em;
+}}
+</style>
+<div class="knotlab-offline" role="alert">{OFFLINE_TEXT}</div>"""
 
 
 @dataclass(frozen=True)
@@ -41,6 +57,7 @@ class Actions:
     use_anyway: Callable[[], None]  # activate a new model the retrain kept inactive
     toggle_warped: Callable[[bool], None]
     suggest: Callable[[], None]
+    cancel_suggest: Callable[[], None]
     agreement: Callable[[], None]
     open_disagreement: Callable[[str], None]
     follow: Callable[[bool], None]
@@ -119,9 +136,11 @@ class LabelPanels:
         gui = client.gui
         icon = viser.Icon
         gui.set_panel_label("knotlab: label demonstrations")
+        # Shown only while the server is unreachable (see OFFLINE_BANNER).
+        self.offline_banner = gui.add_html(OFFLINE_BANNER)
         tabs = self.tabs = gui.add_tab_group()
         with tabs.add_tab("Label", icon=icon.HAND_CLICK):
-            self.status = gui.add_markdown("Connecting...")
+            self.status = gui.add_markdown("loading your labelling state...")
             with gui.add_folder("Candidates (ranked)"):
                 self.cand_buttons = [
                     gui.add_button(f"#{r}", visible=False, hint=f"select rank {r} (key {r})")
@@ -160,6 +179,10 @@ class LabelPanels:
             self.model_table = gui.add_markdown("")
             gui.add_markdown("**What to label next**")
             self.suggest_button = gui.add_button("Suggest what to label next")
+            self.suggest_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
+            self.cancel_suggest_button = gui.add_button(
+                "Cancel suggesting", color="red", icon=icon.X, visible=False
+            )
             self.suggest_status = gui.add_markdown("")
             gui.add_markdown("**How far experts agree**")
             self.agreement_button = gui.add_button("Compute agreement")
@@ -183,6 +206,7 @@ class LabelPanels:
         self.retrain_button.on_click(lambda _e: a.retrain())
         self.use_anyway_button.on_click(lambda _e: a.use_anyway())
         self.suggest_button.on_click(lambda _e: a.suggest())
+        self.cancel_suggest_button.on_click(lambda _e: a.cancel_suggest())
         self.agreement_button.on_click(lambda _e: a.agreement())
         self.open_disagreement.on_click(lambda _e: a.open_disagreement(self.disagreements.value))
         self.follow_suggested.on_update(lambda _e: a.follow(bool(self.follow_suggested.value)))
@@ -218,6 +242,7 @@ class LabelPanels:
     def ask_name(self, on_name: Callable[[str], None]) -> None:
         """A modal asking the labeller's name once per browser; Enter in the field, Enter on
         the button and a click all start (the field sits in a form, which submits on Enter)."""
+        self._set(self.status, "content", "*waiting for your name (in the dialog)*")
         modal = self.client.gui.add_modal("Who is labelling?")
         with modal:
             self.client.gui.add_markdown(
@@ -297,8 +322,14 @@ class LabelPanels:
         self._set(self.accept_button, "disabled", not acceptable)
         self._set(self.reject_button, "disabled", not judging)
         self._set(self.dead_button, "disabled", not judging)
-        self._set(self.resample_button, "disabled", phase in (Phase.TRYING, Phase.NO_STARTS))
-        self._set(self.undo_button, "disabled", phase is Phase.TRYING)
+        # A closed session (its episode taken over in another tab) acts on nothing here.
+        closed = phase is Phase.CLOSED
+        self._set(
+            self.resample_button, "disabled", closed or phase in (Phase.TRYING, Phase.NO_STARTS)
+        )
+        self._set(self.undo_button, "disabled", closed or phase is Phase.TRYING)
+        for command in self.commands:  # the hotkeys too
+            self._set(command, "disabled", closed)
 
     def _set(self, handle: object, prop: str, value: object) -> None:
         """Assign a GUI property only when it changes: every assignment is a websocket message,
@@ -383,6 +414,14 @@ class LabelPanels:
                 modal.close()
                 if on_no is not None:
                     on_no()
+
+    def show_suggest(self, text: str, running: bool, fraction: float) -> None:
+        """Suggestion progress: bar, cancel button, status text, button state."""
+        self.suggest_bar.visible = running
+        self.suggest_bar.value = max(0.0, min(100.0, 100.0 * fraction))  # type: ignore[misc]
+        self.cancel_suggest_button.visible = running
+        self.suggest_status.content = text
+        self.suggest_button.disabled = running
 
     def show_retrain(self, running: bool, text: str, fraction: float) -> None:
         """Retrain progress: bar, stage text, button state."""

@@ -10,32 +10,48 @@ import functools
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from dataclasses import replace
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import viser
 
-from knotlab.app.web.geometry import pick_candidate, tube_faces, tube_vertices
-from knotlab.app.web.session import Candidate, SessionView
+from knotlab.app.web.geometry import frame_points, pick_candidate, tube_faces, tube_vertices
+from knotlab.app.web.session import Candidate, Phase, SessionView
 from knotlab.core.world.frames import FrameRecorder
 
 ROPE_RADIUS = 0.01  # m, as the simulator's rope
 ROPE_COLOUR = (196, 120, 60)
 CLOUD_COLOUR = (40, 90, 200)
 GREY = (170, 170, 170)
-# Rank colours (1 = best): distinct, colour-blind-safe (Okabe-Ito).
+# Rank colours (1 = best): far from the rope's orange, the cloud's blue, the table and the
+# rejected grey, and from each other (CIELAB distance; tests/app/web/test_scene.py). Orange and
+# vermillion are left out: next to the rope they read as part of it.
 RANK_COLOURS = (
-    (0, 158, 115),
-    (230, 159, 0),
-    (86, 180, 233),
-    (204, 121, 167),
-    (213, 94, 0),
-    (0, 114, 178),
-    (240, 228, 66),
-    (120, 120, 120),
-    (0, 0, 0),
+    (0, 158, 115),  # bluish green
+    (170, 51, 119),  # purple
+    (86, 180, 233),  # sky blue
+    (40, 40, 40),  # near black
+    (240, 228, 66),  # yellow
+    (204, 121, 167),  # pink
+    (17, 119, 51),  # dark green
+    (51, 34, 136),  # indigo
+    (136, 34, 85),  # wine
 )
+# The labelling view looks from the front, 41 degrees above the table (x right, y away, z up).
+VIEW_FORWARD = (0.0, 0.75, -0.65)
+FRAME_MARGIN_PX = 24  # what framing keeps clear at the canvas's edges
+TEXT_PX_PER_CHAR = 9.0  # about, for a 3D caption at the scales drawn (measured on screenshots)
+TEXT_PX_HIGH = 24.0  # a caption's height
+# viser's "large" control panel floats over the canvas's right side: 24 em of 16 px, 16 px from
+# the window's edge. Framing keeps the content left of it (on a canvas wide enough for both).
+PANEL_PX = 24 * 16 + 16
+WARPED_POINT_SIZE = 1.4 * ROPE_RADIUS  # m: the warped demo cloud's points, wider than the rope
+WARPED_LIFT = ROPE_RADIUS  # m: and drawn on the rope's top, not inside it
 PLAYBACK_SPEED = 2.0  # animation runs at twice simulated time: a 6 s execution plays in 3 s
+
+
+SceneView = Literal["label", "inspect", "playback"]  # what a tab's 3D view shows
 
 
 def rank_colour(rank: int) -> tuple[int, int, int]:
@@ -47,6 +63,70 @@ def candidate_label(c: Candidate) -> str:
     """The 3D label and list text of a candidate: rank, demo, its step, Q, cost."""
     score = f"Q {c.ranked.q:.2f}" if c.ranked.q is not None else "NN"
     return f"#{c.ranked.rank} {c.ranked.demo_key} · step {c.demo_step + 1} · {score}"
+
+
+def badge_text(c: Candidate, view: SessionView) -> str:
+    """The 3D text of a candidate: the full caption for the selected one, a rank badge for the
+    rest (five full captions overlap one another), with how it was judged."""
+    rank = c.ranked.rank
+    verdict = (
+        " (dead end)" if rank in view.dead_ends else " (rejected)" if rank in view.rejected else ""
+    )
+    return (candidate_label(c) if rank == view.selected else f"#{rank}") + verdict
+
+
+def drawn_candidates(view: SessionView) -> list[Candidate]:
+    """The candidates the scene shows: all while choosing; during and after a try only the
+    tried one (the others' paths would hide what it did)."""
+    if view.phase in (Phase.TRYING, Phase.JUDGING):
+        tried = view.last_try.rank if view.last_try is not None else view.selected
+        return [c for c in view.candidates if c.ranked.rank == tried]
+    return list(view.candidates)
+
+
+def label_anchor(c: Candidate, view: SessionView) -> np.ndarray:
+    """Where a candidate's 3D text sits: the selected caption above its path's highest point,
+    the badges spread along their paths by rank so that they do not stack up."""
+    active = [g for g in range(2) if c.closed_gt[g].any()] or [0]
+    path = np.asarray(c.positions_gt3[active[0]], dtype=np.float64)
+    if c.ranked.rank == view.selected:
+        return path[int(np.argmax(path[:, 2]))] + (0.0, 0.0, 0.03)
+    n = max(len(view.candidates) - 1, 1)
+    at = 0.25 + 0.5 * (c.ranked.rank - 1) / n
+    return path[min(int(at * len(path)), len(path) - 1)] + (0.0, 0.0, 0.015)
+
+
+def framed_points(view: SessionView) -> tuple[np.ndarray, np.ndarray]:
+    """What a new state's camera must show: the rope, every candidate's paths, markers and
+    3D text (as a badge and as the selected caption); and per point the width (px) of the text
+    that starts at it (0: none)."""
+    parts: list[np.ndarray] = []
+    text_px: list[float] = []
+    if view.rope_nodes_k3 is not None:
+        parts.append(np.asarray(view.rope_nodes_k3, dtype=np.float64))
+    for c in view.candidates:
+        for g in range(2):
+            if c.closed_gt[g].any():
+                parts.append(np.asarray(c.positions_gt3[g], dtype=np.float64)[::2])
+        parts += [np.asarray(p, dtype=np.float64)[None] for p in c.grasp_points]
+        parts += [np.asarray(p, dtype=np.float64)[None] for p in c.release_points]
+        text_px += [0.0] * (sum(len(x) for x in parts) - len(text_px))
+        # Its text both as a badge and as the selected caption: a click selects another
+        # candidate without moving the camera, and its caption must still be in view.
+        for as_shown in (replace(view, selected=c.ranked.rank), replace(view, selected=None)):
+            parts.append(label_anchor(c, as_shown)[None])
+            text_px.append(TEXT_PX_PER_CHAR * len(badge_text(c, as_shown)))
+    if not parts:
+        return np.zeros((0, 3)), np.zeros(0)
+    text_px += [0.0] * (sum(len(x) for x in parts) - len(text_px))
+    return np.concatenate(parts), np.asarray(text_px)
+
+
+def free_box(width: int, height: int) -> tuple[float, float, float, float]:
+    """The canvas pixels (left, top, right, bottom) the side panel leaves free, less a margin."""
+    right = width - PANEL_PX if width >= 2 * PANEL_PX else width
+    m = FRAME_MARGIN_PX
+    return (m, m, right - m, height - m)
 
 
 def _xyz(p: np.ndarray) -> tuple[float, float, float]:
@@ -82,6 +162,7 @@ class SceneDrawer:
         self._polylines: dict[int, list[np.ndarray]] = {}
         self._markers: dict[int, list[tuple[np.ndarray, float]]] = {}
         self._drawn_ranks: list[int] = []
+        self._framed_nodes: np.ndarray | None = None  # the rope the camera last framed
         self._lock = threading.RLock()  # one redraw at a time (see _serialised)
         self._anim_stop = threading.Event()
         self._anim_thread: threading.Thread | None = None
@@ -91,16 +172,24 @@ class SceneDrawer:
         )
         self.scene.add_grid("/grid", width=1.6, height=1.2, cell_size=0.1, position=(0, 0, 0.0005))
         self.label_root = self.scene.add_frame("/label", show_axes=False)
+        self.showing: SceneView = "label"
         self.scene.on_click()(self._scene_click)
 
-    def set_label_visible(self, visible: bool) -> None:
-        """Show or hide everything the labelling view draws (Inspect draws its own)."""
-        self.label_root.visible = visible
+    def show_only(self, view: SceneView) -> None:
+        """Show one of the tab's 3D views: the labelling one (hidden, kept, while another
+        shows), Inspect's state (/inspect) or a playback (/playback); the other two go."""
+        self.showing = view
+        self.label_root.visible = view == "label"
+        if view != "inspect":
+            self.scene.remove_by_name("/inspect")
+        if view != "playback":
+            self.scene.remove_by_name("/playback")
 
     # ------------------------------------------------------------------ state
     @_serialised
     def draw(self, view: SessionView, *, look: bool = False, show_warped: bool = False) -> None:
-        """Draw the rope, cloud and candidates of ``view`` (``look`` points the camera at it)."""
+        """Draw the rope, cloud and candidates of ``view``; a new state (another rope) is framed,
+        and ``look`` frames it again."""
         with self.client.atomic():
             if view.rope_nodes_k3 is not None:
                 self.draw_rope(view.rope_nodes_k3)
@@ -119,8 +208,11 @@ class SceneDrawer:
                 self.scene.remove_by_name("/label/cloud")
             self.scene.remove_by_name("/label/grippers")
             self.draw_candidates(view)
-        if look and view.rope_nodes_k3 is not None:
-            self.look_at(view.rope_nodes_k3)
+        nodes = view.rope_nodes_k3
+        if nodes is not None and (
+            look or self._framed_nodes is None or not np.array_equal(nodes, self._framed_nodes)
+        ):
+            self.frame(view)
 
     def draw_rope(self, nodes_k3: np.ndarray) -> None:
         """The rope as a closed tube mesh."""
@@ -133,20 +225,54 @@ class SceneDrawer:
             flat_shading=False,
         )
 
-    def look_at(self, nodes_k3: np.ndarray) -> None:
-        """Point the camera at the rope from the front, above the table."""
-        centre = np.asarray(nodes_k3).mean(axis=0)
+    def frame(self, view: SessionView) -> None:
+        """Point the camera from the front, above the table, as close as it can be while the
+        rope and every candidate's paths, markers and text are in view, left of the panel."""
+        points, text_px = framed_points(view)
+        if not len(points):
+            return
+        self._framed_nodes = view.rope_nodes_k3
+        self.frame_points(points, text_px)
+
+    def frame_points(self, points_p3: np.ndarray, text_px: np.ndarray | None = None) -> None:
+        """Point the camera from the front, above the table, at these points (left of the
+        panel, as close as they all fit); a point where text starts keeps the text's width
+        (px, per point) clear of the panel too (viser draws a label rightwards from its
+        anchor)."""
         cam = self.client.camera
-        cam.look_at = (float(centre[0]), float(centre[1]), 0.0)
-        cam.position = (float(centre[0]), float(centre[1]) - 0.75, 0.65)
+        width, height = cam.image_width, cam.image_height
+        if width <= 0 or height <= 0:
+            return  # the browser has not reported its canvas yet
+        up = np.asarray(cam.up_direction, dtype=np.float64)
+        if not np.linalg.norm(up):
+            up = np.array([0.0, 0.0, 1.0])
+        box = np.tile(np.asarray(free_box(width, height), dtype=np.float64), (len(points_p3), 1))
+        if text_px is not None:
+            box[:, 2] -= text_px
+            box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH, 0.0)
+        position, look_at = frame_points(
+            points_p3,
+            np.asarray(VIEW_FORWARD),
+            up,
+            cam.fov,
+            (width, height),
+            box,
+        )
+        # Position first: viser moves the look-at point along with the position, so the
+        # look-at point set second is the one that stays (the other order depends on where
+        # the camera was, and a new tab's camera starts elsewhere).
+        cam.position = position
+        cam.look_at = look_at
 
     @_serialised
     def draw_candidates(self, view: SessionView) -> None:
-        """Every candidate's warped trajectories, markers and 3D label; selected one thicker."""
+        """The candidates' warped paths, markers and 3D text (the selected one thicker, with
+        its full caption; the others with rank badges); during and after a try, the tried one."""
         self.scene.remove_by_name("/label/candidates")
         self._polylines = {}
         self._markers = {}
-        for c in view.candidates:
+        shown = drawn_candidates(view)
+        for c in shown:
             rank = c.ranked.rank
             rejected = rank in view.rejected
             colour = GREY if rejected else rank_colour(rank)
@@ -184,19 +310,13 @@ class SceneDrawer:
                 )
                 # The box picked as its circumscribed sphere (half-diagonal 1.39 x radius).
                 markers.append((np.asarray(p, dtype=np.float64), radius * 0.8 * np.sqrt(3)))
-            # Labels half-way along each path, stacked by rank: candidates often grasp the same
-            # rope end, where their labels would overlap.
-            active = [g for g in range(2) if c.closed_gt[g].any()] or [0]
-            path = c.positions_gt3[active[0]]
-            anchor = path[len(path) // 2]
             self.scene.add_label(
                 f"{base}/label",
-                candidate_label(c)
-                + (" (dead end)" if rank in view.dead_ends else " (rejected)" if rejected else ""),
-                position=(float(anchor[0]), float(anchor[1]), float(anchor[2]) + 0.035 * rank),
-                font_screen_scale=1.2 if selected else 0.9,
+                badge_text(c, view),
+                position=_xyz(label_anchor(c, view)),
+                font_screen_scale=1.1 if selected else 0.9,
             )
-        self._drawn_ranks = [c.ranked.rank for c in view.candidates]
+        self._drawn_ranks = [c.ranked.rank for c in shown]
 
     @_serialised
     def show_warped(self, rank: int | None, cloud_n3: np.ndarray | None) -> None:
@@ -204,11 +324,13 @@ class SceneDrawer:
         self.scene.remove_by_name("/label/warped")
         if rank is None or cloud_n3 is None:
             return
+        # Its points lie on the rope's surface: drawn wider than the rope (and above it) so
+        # the tube does not hide them.
         self.scene.add_point_cloud(
             "/label/warped",
-            np.asarray(cloud_n3, dtype=np.float32),
+            np.asarray(cloud_n3, dtype=np.float32) + np.array([0.0, 0.0, WARPED_LIFT], np.float32),
             rank_colour(rank),
-            point_size=0.008,
+            point_size=WARPED_POINT_SIZE,
             point_shape="diamond",
             precision="float32",
         )

@@ -9,12 +9,14 @@ import contextlib
 import io
 import logging
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import viser
 
+from knotlab.app.web.access import AccessGate
 from knotlab.app.web.jobs import ReportKind, RetrainJob, RetrainOutcome, RetrainReport
 from knotlab.app.web.resources import (
     AppResources,
@@ -29,6 +31,7 @@ from knotlab.app.web.tab import LabelTab, NotifyColour
 from knotlab.labeling_db.store import LabelMix, Store
 
 log = logging.getLogger(__name__)
+SUGGEST_REPORT_EVERY = 2  # starts scored between progress reports (each ~0.2 s)
 REASON_CHARS = 200  # the store keeps an activation's reason in 200 characters
 
 
@@ -76,8 +79,10 @@ class LabelApp:
         lite_rendering: bool = False,
         sim_workers: int = 2,
         test_tasks_path: Path | None = None,
+        token: str | None = None,
     ) -> None:
         self.store = store
+        self.token = token  # None: no token asked (loopback)
         self._test_tasks_path = test_tasks_path
         self._test_tasks = None
         self.resources = resources
@@ -89,10 +94,13 @@ class LabelApp:
         self.last_outcome: RetrainOutcome | None = None  # the last finished retrain
         self.pending: RetrainOutcome | None = None  # a new model kept inactive: "use it anyway"
         self._tabs: dict[int, LabelTab] = {}
+        self._gone: set[int] = set()  # client ids that disconnected
         self.suggested: list[int] = []  # start state ids, most informative first
         self.suggest_text = ""
         self._suggest_lock = threading.Lock()
         self._suggesting = False
+        self._suggest_cancel = threading.Event()
+        self._suggest_fraction = 0.0
         self._tabs_lock = threading.Lock()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when quiet
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -135,6 +143,17 @@ class LabelApp:
             return self._tabs.get(client_id)
 
     def _connect(self, client: viser.ClientHandle) -> None:
+        if self.token is None:
+            self._admit(client)
+            return
+        # Nothing of the app (scene, panels, state) goes to a browser before the token.
+        AccessGate(client, self.token, lambda: self._admit(client)).open()
+
+    def _admit(self, client: viser.ClientHandle) -> None:
+        """Build the tab of a client that may use the app, and start it."""
+        with self._tabs_lock:
+            if client.client_id in self._gone:
+                return  # it went away while the token was asked
         tab = LabelTab(self, client)
         with self._tabs_lock:
             self._tabs[client.client_id] = tab
@@ -143,6 +162,7 @@ class LabelApp:
     def _disconnect(self, client: viser.ClientHandle) -> None:
         with self._tabs_lock:
             tab = self._tabs.pop(client.client_id, None)
+            self._gone.add(client.client_id)
         if tab is not None:
             tab.close()
 
@@ -320,51 +340,76 @@ class LabelApp:
 
     # ------------------------------------------------------------------ suggestions
     def start_suggest(self) -> bool:
-        """Rank unlabelled starts by how much a label would teach the model, in the background."""
+        """Rank unlabelled starts by how much a label would teach the model, in the background
+        (progress shown in every tab; cancel_suggest stops it)."""
         ranking = self.resources.current
         with self._suggest_lock:
             if self._suggesting or ranking.model is None:
                 return False
             self._suggesting = True
+            cancel = self._suggest_cancel = threading.Event()
 
         def work() -> None:
             from knotlab.core.selection.acquisition import rank_for_labelling, score_scan
 
             try:
+                self._suggest_progress("loading the unlabelled starts", 0.0)
                 states = self.store.start_states_to_label()
                 keys = self.resources.library.keys
                 scores = []
+                t0 = time.perf_counter()
                 for i, st in enumerate(states):
+                    if cancel.is_set():
+                        break
                     phi, scan = ranking.featurizer.features(st.cloud_n3)
                     assert ranking.model is not None
                     scores.append(score_scan(f"{st.state_id}", scan, phi, ranking.model, keys))
-                    if i % 10 == 0:
-                        self._suggest_progress(f"scoring {i + 1} of {len(states)} starts")
-                order = rank_for_labelling(scores, by="combined", seed=0)
-                self.suggested = [int(r.score.key) for r in order]
-                by_id = {st.state_id: st for st in states}
-                top = [
-                    f"{r.rank}. `{by_id[int(r.score.key)].provenance.task_id}` "
-                    f"(Q margin {r.score.margin:.3f}, NN/greedy disagree: "
-                    f"{'yes' if r.score.disagreement else 'no'})"
-                    for r in order[:5]
-                ]
-                text = f"{len(order)} starts ranked by {ranking.label}; first:  \n" + "  \n".join(
-                    top
-                )
+                    if i % SUGGEST_REPORT_EVERY == 0:
+                        self._suggest_progress(
+                            f"scoring start {i + 1} of {len(states)} "
+                            f"({time.perf_counter() - t0:.0f} s)",
+                            (i + 1) / max(len(states), 1),
+                        )
+                if cancel.is_set():
+                    kept = "the previous order is kept" if self.suggested else "no order yet"
+                    text = f"cancelled after {len(scores)} of {len(states)} starts; {kept}"
+                else:
+                    order = rank_for_labelling(scores, by="combined", seed=0)
+                    self.suggested = [int(r.score.key) for r in order]
+                    by_id = {st.state_id: st for st in states}
+                    top = [
+                        f"{r.rank}. `{by_id[int(r.score.key)].provenance.task_id}` "
+                        f"(Q margin {r.score.margin:.3f}, NN/greedy disagree: "
+                        f"{'yes' if r.score.disagreement else 'no'})"
+                        for r in order[:5]
+                    ]
+                    text = (
+                        f"{len(order)} starts ranked by {ranking.label} in "
+                        f"{time.perf_counter() - t0:.0f} s; first:  \n" + "  \n".join(top)
+                    )
             except Exception as exc:
+                log.exception("suggest failed")
                 text = f"suggest failed: {type(exc).__name__}: {exc}"
             with self._suggest_lock:
                 self._suggesting = False
-            self._suggest_progress(text)
+            self._suggest_progress(text, 1.0)
 
         threading.Thread(target=work, name="suggest", daemon=True).start()
         return True
 
-    def _suggest_progress(self, text: str) -> None:
-        self.suggest_text = text
+    def cancel_suggest(self) -> bool:
+        """Stop a running suggestion at its next start; False when none runs."""
+        with self._suggest_lock:
+            if not self._suggesting:
+                return False
+            self._suggest_cancel.set()
+        self._suggest_progress("cancelling...", self._suggest_fraction)
+        return True
+
+    def _suggest_progress(self, text: str, fraction: float) -> None:
+        self.suggest_text, self._suggest_fraction = text, fraction
         for tab in self.tabs():
-            tab.show_suggest(text, self._suggesting)
+            tab.show_suggest(text, self._suggesting, fraction)
 
     def stop(self) -> None:
         """Stop serving: close every tab (no half label), stop a retrain, stop viser."""

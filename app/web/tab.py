@@ -22,7 +22,7 @@ from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import SceneDrawer
-from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError
+from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError, SessionView
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
 
@@ -63,6 +63,7 @@ class LabelTab:
                 use_anyway=self.use_anyway,
                 toggle_warped=lambda _on: self._redraw_warped(),
                 suggest=self.suggest,
+                cancel_suggest=self.cancel_suggest,
                 agreement=self.agreement,
                 open_disagreement=self.open_disagreement,
                 follow=self.follow,
@@ -75,13 +76,17 @@ class LabelTab:
                 self.inspector,
                 current_nodes=lambda: None if self.session is None else self.session.nodes_k3,
                 start_nodes=app.start_nodes,
-                set_label_visible=self.drawer.set_label_visible,
+                enter_view=lambda: self.drawer.show_only("inspect"),
+                frame=self.drawer.frame_points,
+                back=self.back_to_labelling,
             )
         with self.panels.tabs.add_tab("Playback", icon=viser.Icon.MOVIE):
             self.playback = PlaybackPanel(
                 client,
                 lambda episode_id: store_episode(app.store, episode_id),
-                self.drawer.set_label_visible,
+                lambda labelling: (
+                    self.back_to_labelling() if labelling else self.drawer.show_only("playback")
+                ),
                 inspect=self.inspect.inspect_nodes,
             )
         self.refresh_models()
@@ -160,6 +165,14 @@ class LabelTab:
         self.ready.set()
         log.info("client %s: %s labels %s", self.client.client_id, name, view.task_id)
 
+    def back_to_labelling(self) -> None:
+        """Show the labelling state again (after Inspect or a playback drew theirs), framed."""
+        if self.closed or self.drawer.showing == "label":
+            return
+        self.drawer.show_only("label")
+        if self.session is not None:
+            self.drawer.frame(self.session.view())
+
     # ------------------------------------------------------------------ actions
     def select(self, rank: int) -> None:
         """Select a candidate by rank (3D click, list button or hotkey)."""
@@ -170,6 +183,7 @@ class LabelTab:
         session = self.session
         if session is None:
             return
+        self.back_to_labelling()  # a labelling key pressed while Inspect showed its state
         view = session.view()
         if view.phase is not Phase.CHOOSING or view.selected is None:
             self._notify("nothing to try", "select a candidate first", "yellow")
@@ -177,7 +191,10 @@ class LabelTab:
         recorder = FrameRecorder(FRAME_DT)
         t0 = time.perf_counter()
         self.drawer.show_warped(None, None)
-        self.panels.show(_trying(view))
+        trying = _trying(view)
+        with self.client.atomic():
+            self.drawer.draw_candidates(trying)  # the tried path alone
+            self.panels.show(trying)
         cand = session.candidate(view.selected)
         active = (bool(cand.closed_gt[0].any()), bool(cand.closed_gt[1].any()))
         self.drawer.animate(recorder, view.selected, active)
@@ -212,6 +229,7 @@ class LabelTab:
         session = self.session
         if session is None:
             return
+        self.back_to_labelling()  # a labelling key pressed while Inspect showed its state
         t0 = time.perf_counter()
         try:
             action(session)
@@ -343,10 +361,15 @@ class LabelTab:
         if self.session is not None:
             self.session.prefer = (lambda: self.app.suggested) if on else None
 
-    def show_suggest(self, text: str, running: bool) -> None:
-        """Redraw the suggestion status."""
-        self.panels.suggest_status.content = text
-        self.panels.suggest_button.disabled = running
+    def cancel_suggest(self) -> None:
+        """Stop a running suggestion at its next start (the last finished order stays)."""
+        if not self.app.cancel_suggest():
+            self._notify("nothing to cancel", "no suggestion is running", "yellow")
+
+    def show_suggest(self, text: str, running: bool, fraction: float = 0.0) -> None:
+        """Redraw the suggestion status and progress."""
+        if not self.closed:
+            self.panels.show_suggest(text, running, fraction)
 
     def use_model(self, version: str | None) -> None:
         """Rank every tab's next states with model ``version``, once the labeller confirms."""
@@ -435,7 +458,8 @@ class LabelTab:
         self.playback.stop()
 
 
-def _trying(view):
+def _trying(view: SessionView) -> SessionView:
+    """``view`` as shown while its selected candidate is simulated."""
     view.phase = Phase.TRYING
     view.message = "simulating..."
     return view

@@ -167,10 +167,10 @@ class Tab:
         return self.server_tab.session
 
     def focus_canvas(self) -> None:
-        """Give the 3D canvas keyboard focus (viser's hotkeys need it), away from the scene."""
-        canvas = self.page.locator("canvas").nth(1)
-        box = canvas.bounding_box()
-        self.page.mouse.click(box["x"] + 8, box["y"] + box["height"] - 8)
+        """Take keyboard focus off any field, so that a key is a hotkey (viser's hotkeys listen
+        on the document and skip inputs). No click: the framed scene fills the canvas, and a
+        click anywhere on it may select a candidate."""
+        self.page.evaluate("() => document.activeElement && document.activeElement.blur()")
 
     def press(self, key: str) -> None:
         """A hotkey, as a labeller presses it."""

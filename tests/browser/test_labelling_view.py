@@ -38,9 +38,20 @@ def _candidate_points(view) -> tuple[np.ndarray, np.ndarray]:
 def assert_framed(tab, what: str, shot: str) -> None:
     """Every candidate's markers and paths project inside the canvas, left of the side panel,
     and with the rope fill a fair part of that space (not a few pixels in the middle)."""
+    from knotlab.app.web.scene import TEXT_PX_PER_CHAR, badge_text, label_anchor
+
     view = tab.session.view()
     markers, paths = _candidate_points(view)
-    wait_until(lambda: tab.server_tab.ready.is_set(), 20, "the state drawn")
+    chosen = next(c for c in view.candidates if c.ranked.rank == view.selected)
+    # The state is drawn in the browser (its camera comes in the same batch as its captions).
+    wait_until(
+        lambda: (
+            (n := _scene_node(tab.page, f"/label/candidates/{view.selected}/label")) is not None
+            and n["props"]["text"] == badge_text(chosen, view)
+        ),
+        20,
+        "the state drawn in the browser",
+    )
     panel = tab.panel_box()
     tab.settled_camera()
     keep_shot(tab.page, shot)
@@ -55,13 +66,10 @@ def assert_framed(tab, what: str, shot: str) -> None:
             & (uv[:, 1] <= canvas["y"] + canvas["height"])
         )
         assert inside.all(), f"{what}: {np.sum(~inside)} {name}s off screen or under the panel"
-    # The selected candidate's caption (centred on its anchor) is clear of the panel too.
-    from knotlab.app.web.scene import TEXT_PX_PER_CHAR, badge_text, label_anchor
-
-    chosen = next(c for c in view.candidates if c.ranked.rank == view.selected)
+    # The selected candidate's caption (drawn rightwards from its anchor) is clear of the panel.
     ((u, _v),) = tab.project(label_anchor(chosen, view)[None])
-    half = TEXT_PX_PER_CHAR * len(badge_text(chosen, view)) / 2
-    assert canvas["x"] <= u - half and u + half <= panel["x"], f"{what}: the caption is cut"
+    width = TEXT_PX_PER_CHAR * len(badge_text(chosen, view))
+    assert canvas["x"] <= u and u + width <= panel["x"], f"{what}: the caption is cut"
     uv = tab.project(np.concatenate([markers, paths, view.rope_nodes_k3]))
     spread = np.ptp(uv, axis=0) / (panel["x"] - canvas["x"], canvas["height"])
     assert spread.max() > 0.5, f"{what}: the candidates fill only {spread} of the free view"
