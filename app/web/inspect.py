@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from knotlab.app.web.resources import AppResources, RankingModel
 from knotlab.app.web.sim_pool import PoolRunner, SimPool
+from knotlab.core.execution.compare import ModelAndWorld
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import DemoTransferer, TransferPlan
 from knotlab.core.selection.explain import Contribution, PolicyChoices, feature_contributions
@@ -88,6 +89,7 @@ class Inspector:
         self._search: threading.Thread | None = None
         self._cancel = threading.Event()  # the running search's; set: stop at its next expansion
         self._generation = 0  # a newer load makes an older search's result stale
+        self._other_worlds: dict = {}  # physics -> RopeWorld: worlds unlike the model, to compare
 
     def load(self, nodes_k3: np.ndarray, label: str) -> InspectView:
         """Observe, scan and rank this rope; NN and greedy choices and every Q's contributions."""
@@ -198,6 +200,33 @@ class Inspector:
         self._search.start()
         return True
 
+    def model_and_world(self, demo_index: int, world_setting: str) -> ModelAndWorld:
+        """Candidate ``demo_index`` on the loaded rope, simulated in the agent's model (this
+        inspector's nominal world) and in the world of ``world_setting`` (a physics setting
+        name; a combined one drawn for this state's label), from the same rope at rest."""
+        from knotlab.core.execution.compare import outcome_in_model_and_world
+        from knotlab.core.world.mismatch import parse_setting
+
+        physics = parse_setting(world_setting).params_for(self.view.label if self.view else "")
+        with self._lock:
+            view = self.view
+            if view is None:
+                raise ValueError("inspect a state first")
+            if physics not in self._other_worlds:
+                self._other_worlds[physics] = RopeWorld(physics.rope, physics.gripper)
+            agent = self.res.current.agent
+            out = outcome_in_model_and_world(
+                view.nodes_k3,
+                view.cloud_n3,
+                demo_index,
+                agent.transferer,
+                self.world,
+                self._other_worlds[physics],
+                task=agent.task,
+            )
+            self.world.reset(view.nodes_k3)  # the loaded state again, for a search
+            return out
+
     def cancel_lookahead(self) -> bool:
         """Stop the running search at its next expansion; False when none runs."""
         if self._search is None or not self._search.is_alive():
@@ -228,3 +257,5 @@ class Inspector:
         self._cancel.set()
         with self._lock:
             self.world.close()
+            for world in self._other_worlds.values():
+                world.close()

@@ -16,6 +16,7 @@ import viser
 from knotlab.app.web.geometry import tube_faces, tube_vertices
 from knotlab.app.web.inspect import Inspector, InspectView
 from knotlab.app.web.scene import CLOUD_COLOUR, ROPE_COLOUR, ROPE_RADIUS
+from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.selection.explain import lookahead_tree, search_tree_lines
 
 log = logging.getLogger(__name__)
@@ -25,6 +26,22 @@ SCENE_CLOUD = CLOUD_COLOUR
 DEMO_CLOUD = (150, 150, 150)
 WARPED_CLOUD = (0, 158, 115)
 PAIR_COLOUR = (230, 159, 0)
+MODEL_AFTER = (120, 120, 120)  # the rope after candidate A in the agent's model
+WORLD_AFTER = (204, 121, 167)  # ... and in the world unlike the model
+# Worlds a researcher can compare the agent's model with (physics setting names).
+COMPARE_WORLDS = (
+    "mass+50",
+    "table_friction-50",
+    "rope_friction-50",
+    "damping+50",
+    "grip_force-50",
+    "grasp_reach-50",
+    "gripper_speed+50",
+    "settle_time-50",
+    "length+25",
+    "combined25",
+    "combined50",
+)
 
 
 # The bar plot is drawn at the panel's width (about 350 px on screen) at twice its pixels, one
@@ -85,6 +102,11 @@ def registration_legend() -> str:
     )
 
 
+def _swatch(rgb: tuple[int, int, int]) -> str:
+    """A coloured block for a markdown legend."""
+    return f'<span style="color: rgb{rgb}">━━</span>'
+
+
 class InspectPanel:
     """The Inspect tab of one browser tab (its own Inspector and simulator)."""
 
@@ -127,6 +149,13 @@ class InspectPanel:
         self.compare = gui.add_markdown("")
         self.show_3d = gui.add_checkbox("Show A's registration in 3D", False)
         self.legend = gui.add_markdown(registration_legend(), visible=False)
+        self.compare_world = gui.add_dropdown(
+            "World unlike the model", COMPARE_WORLDS, hint="a physics setting (docs/robustness.md)"
+        )
+        self.compare_button = gui.add_button(
+            "Simulate A in the model and in that world", icon=viser.Icon.PLAYER_PLAY
+        )
+        self.compare_result = gui.add_markdown("")
         self._keys_to_index: dict[str, int] = {}
         self.inspect_button.on_click(lambda _e: self.run_inspect())
         self.back_button.on_click(lambda _e: back())
@@ -135,6 +164,7 @@ class InspectPanel:
         self.cand_a.on_update(lambda _e: self.show_candidates())
         self.cand_b.on_update(lambda _e: self.show_candidates())
         self.show_3d.on_update(lambda _e: self.draw_3d(reframe=True))
+        self.compare_button.on_click(lambda _e: self.run_compare())
 
     # ------------------------------------------------------------------ actions
     def run_inspect(self) -> None:
@@ -198,6 +228,73 @@ class InspectPanel:
         self.cand_a.value = demo_a  # type: ignore[misc]
         self.cand_b.value = demo_b  # type: ignore[misc]
         self.show_candidates()
+
+    def run_compare(self) -> None:
+        """Candidate A in the agent's model and in the chosen world, side by side."""
+        picked = self._picked()
+        if self.inspector.view is None or not picked:
+            self.compare_result.content = "Inspect a state and pick candidate A first."
+            return
+        setting = str(self.compare_world.value)
+        self.compare_result.content = f"simulating A in the model and in {setting}..."
+        self.compare_button.disabled = True
+        try:
+            out = self.inspector.model_and_world(picked[0], setting)
+        except Exception as exc:  # shown as a sentence, never a raw traceback
+            self.compare_result.content = f"**cannot simulate**: {exc}"
+            return
+        finally:
+            self.compare_button.disabled = False
+        names = self.inspector.res.task.stage_names
+
+        def cell(o: ActionOutcome) -> str:
+            stage = names[o.stage] if 0 <= o.stage < len(names) else str(o.stage)
+            failed = f", failed: {o.failure}" if o.failure else ""
+            return f"{stage}{' (knot)' if o.knot else ''}{failed}"
+
+        codes = f"`{out.model.gauss_code or '-'}` | `{out.world.gauss_code or '-'}`"
+        apart = out.apart_mm
+        self.compare_result.content = "\n".join(
+            [
+                f"**`{self.inspector.res.library.keys[picked[0]]}`** from this rope:",
+                "",
+                f"| | the agent's model | {setting} |",
+                "|---|---|---|",
+                f"| stage reached | {cell(out.model)} | {cell(out.world)} |",
+                f"| crossing code | {codes} |",
+                "",
+                f"The ropes end **{apart:.0f} mm** apart on average"
+                + ("; the same outcome." if out.agree else "; **the outcomes differ**."),
+                "",
+                f"{_swatch(MODEL_AFTER)} after, in the model; {_swatch(WORLD_AFTER)} after, in "
+                f"{setting}",
+            ]
+        )
+        self.draw_compare(out.model.nodes_after_k3, out.world.nodes_after_k3)
+
+    def draw_compare(self, model_k3: np.ndarray, world_k3: np.ndarray) -> None:
+        """The rope after candidate A in the model and in the other world, over the state."""
+        scene = self.client.scene
+        points = [np.asarray(self.inspector.view.nodes_k3)] if self.inspector.view else []
+        with self.client.atomic():
+            for name, nodes, colour in (
+                ("model", model_k3, MODEL_AFTER),
+                ("world", world_k3, WORLD_AFTER),
+            ):
+                nodes = np.asarray(nodes, dtype=float)
+                if not np.all(np.isfinite(nodes)):
+                    scene.remove_by_name(f"/inspect/compare/{name}")
+                    continue
+                scene.add_mesh_simple(
+                    f"/inspect/compare/{name}",
+                    tube_vertices(nodes, 0.7 * ROPE_RADIUS),
+                    tube_faces(len(nodes), 12),
+                    color=colour,
+                    opacity=0.85,
+                )
+                points.append(nodes)
+        if points:
+            self._frame(np.concatenate(points))
 
     def run_search(self) -> None:
         """Start the lookahead search (progress and tree update as it runs; it can be
@@ -311,8 +408,10 @@ class InspectPanel:
     def draw_state(self, view: InspectView) -> None:
         """Draw the inspected rope and its cloud in place of the labelling view, framed."""
         nodes = np.asarray(view.nodes_k3)
+        self.compare_result.content = ""
         with self.client.atomic():
             self._enter_view()
+            self.client.scene.remove_by_name("/inspect/compare")
             self.client.scene.add_mesh_simple(
                 "/inspect/rope",
                 tube_vertices(nodes, ROPE_RADIUS),

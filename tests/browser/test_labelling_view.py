@@ -404,3 +404,29 @@ def test_the_lookahead_search_shows_progress_and_cancel_leaves_the_app_usable(ta
     # The app stays usable: the labeller's try runs on the same simulation workers.
     tab.press("Enter")
     wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 90, "a try after the cancel")
+
+
+def test_inspect_simulates_a_candidate_in_the_model_and_in_a_world_unlike_it(tabs):
+    tab = tabs("cmp")
+    page = tab.page
+    _inspect(tab, "test task", 1)
+    panel = tab.server_tab.inspect
+    panel.compare_world.value = "table_friction-50"
+    button = page.get_by_role("button", name="Simulate A in the model and in that world")
+    button.scroll_into_view_if_needed()
+    button.click()
+    text = wait_until(
+        lambda: "apart on average" in panel.compare_result.content and panel.compare_result.content,
+        60,
+        "the side-by-side outcome",
+    )
+    assert "the agent's model" in text and "table_friction-50" in text
+    assert "stage reached" in text and "crossing code" in text
+    wait_until(lambda: _scene_has(page, "/inspect/compare/model"), 10, "the model's rope after")
+    wait_until(lambda: _scene_has(page, "/inspect/compare/world"), 10, "the world's rope after")
+    page.get_by_text("apart on average").scroll_into_view_if_needed()
+    keep_shot(page, "inspect_model_and_world")
+    # Another state clears the comparison: it belonged to the state it was made from.
+    _inspect(tab, "test task", 2)
+    wait_until(lambda: not _scene_has(page, "/inspect/compare/model"), 10, "comparison cleared")
+    assert panel.compare_result.content == ""
