@@ -70,3 +70,40 @@ def test_policy_states_label_files_read_back_and_append_without_a_second_header(
     back = policy_states._read(path)  # the labels format's reader accepts what was written
     assert [e.execution_id for e in back] == [e.execution_id for e in executions]
     assert sum('"format"' in line for line in path.read_text().splitlines()) == 1
+
+
+def _line(policy: str, task: int, success: bool, **extra) -> str:
+    import json
+
+    return json.dumps(
+        {"policy": policy, "task_id": f"t{task}", "success": success, "failure_kind": None, **extra}
+    )
+
+
+def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root, tmp_path, capsys):
+    robustness = load_bench_module(project_root, "robustness")
+    matched, out, robust = tmp_path / "matched", tmp_path / "study", tmp_path / "robust"
+    for folder in (matched, out / "combined25", out / "combined25_known", robust / "combined25"):
+        folder.mkdir(parents=True)
+    (matched / "outcomes.jsonl").write_text(
+        "\n".join(_line("la2x5", i, True) for i in range(4)) + "\n"
+    )
+    (out / "combined25" / "outcomes.jsonl").write_text(
+        "\n".join(_line("la2x5", i, i < 2) for i in range(4)) + "\n"
+    )
+    (out / "combined25_known" / "outcomes.jsonl").write_text(
+        "\n".join(_line("la2x5", i, i < 3) for i in range(4)) + "\n"
+    )
+    (robust / "combined25" / "outcomes.jsonl").write_text(
+        "\n".join(_line("rla2x5k2", i, i != 1, estimate_error_mm=[4.0, 8.0]) for i in range(4))
+        + "\n"
+    )
+    args = SimpleNamespace(out_dir=str(out), matched=str(matched), robust_dir=str(robust))
+    assert robustness.report(args) == 0
+    text = capsys.readouterr().out
+    assert "| combined25 | la2x5 | 4 | 50.0 %" in text  # against the matched world: -50 points
+    assert "| combined25 | la2x5 | 4 | 50.0 % | 75.0 % | -25.0 |" in text  # against its control
+    assert "| combined25 | rla2x5k2 | 4 | 75.0 % | 50.0 % | +25.0 |" in text  # robust vs plain
+    summary = (out / "summary.json").read_text()
+    assert '"model_error"' in summary and '"robust_vs_plain"' in summary
+    assert (out / "robustness.png").stat().st_size > 1000
