@@ -6,7 +6,10 @@ input was at fault (fix the arguments or files and rerun), 1 when a run on good 
 
 from __future__ import annotations
 
-from typing import ClassVar
+from enum import Enum
+from typing import ClassVar, TypeVar
+
+E = TypeVar("E", bound=Enum)  # a vocabulary (`parse_choice`)
 
 
 class KnotlabError(Exception):
@@ -31,3 +34,13 @@ class SolverError(KnotlabError):
     """A numerical solve (QP, linear system) failed or produced non-finite values."""
 
     exit_code: ClassVar[int] = 1  # the input was accepted; the computation failed
+
+
+def parse_choice(kind: type[E], value: object, noun: str) -> E:
+    """The member of string enum ``kind`` named ``value``; one line naming ``noun`` and the
+    choices otherwise (every vocabulary a user types goes through here)."""
+    try:
+        return kind(value)
+    except ValueError:
+        choices = ", ".join(str(m.value) for m in kind)
+        raise InvalidInputError(f"unknown {noun} {value!r}; expected one of {choices}") from None

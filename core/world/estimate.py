@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from knotlab.core.errors import InvalidInputError
+from knotlab.core.errors import InvalidInputError, parse_choice
 from knotlab.core.world.observation import TRACKER_NOISE, centreline_points, tracked_centreline
 from knotlab.core.world.protocol import World
 from knotlab.core.world.rope import resample_by_arc_length, rope_length, scale_xy_to_length
@@ -66,13 +66,7 @@ class EstimatorKind(StrEnum):
     @classmethod
     def parse(cls, value: str | EstimatorKind) -> EstimatorKind:
         """The estimator named ``value``; a one-line error naming the choices otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            choices = ", ".join(k.value for k in cls)
-            raise InvalidInputError(
-                f"unknown state estimator {value!r}; expected one of {choices}"
-            ) from None
+        return parse_choice(cls, value, "state estimator")
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from knotlab.core.arrays import points_n3
-from knotlab.core.errors import InvalidInputError
+from knotlab.core.errors import InvalidInputError, parse_choice
 from knotlab.core.voxels import voxel_groups
 
 if TYPE_CHECKING:  # the simulator imports this module (and pybullet): only for the checker
@@ -51,13 +51,7 @@ class ObservationModel(StrEnum):
     @classmethod
     def parse(cls, value: str | ObservationModel) -> ObservationModel:
         """The model named ``value``; a clear error naming the choices otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            choices = ", ".join(m.value for m in cls)
-            raise InvalidInputError(
-                f"unknown observation model {value!r}; expected one of {choices}"
-            ) from None
+        return parse_choice(cls, value, "observation model")
 
     @classmethod
     def of_library_metadata(cls, metadata: dict) -> ObservationModel:
