@@ -9,12 +9,13 @@ import io
 import logging
 import threading
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 
 import numpy as np
 import viser
 
 from knotlab.app.web.geometry import tube_faces, tube_vertices
-from knotlab.app.web.inspect import Inspector, InspectView
+from knotlab.app.web.inspect import Inspector, InspectView, RegistrationView
 from knotlab.app.web.scene import CLOUD_COLOUR, ROPE_COLOUR, ROPE_RADIUS
 from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.selection.explain import lookahead_tree, search_tree_lines
@@ -116,7 +117,7 @@ class InspectPanel:
         inspector: Inspector,
         current_nodes: Callable[[], np.ndarray | None],
         start_nodes: Callable[[str, int], np.ndarray],
-        enter_view: Callable[[], None],
+        drawing: Callable[..., AbstractContextManager[bool]],
         frame: Callable[[np.ndarray], None],
         back: Callable[[], None],
     ) -> None:
@@ -124,7 +125,9 @@ class InspectPanel:
         self.inspector = inspector
         self._current_nodes = current_nodes
         self._start_nodes = start_nodes
-        self._enter_view = enter_view  # the 3D view shows Inspect's state (others hidden)
+        # drawing(enter=...) holds the 3D view for Inspect (showing it first if ``enter``) and
+        # says whether Inspect's state is still the one on screen.
+        self._drawing = drawing
         self._frame = frame  # point the camera at these points
         self._lock = threading.Lock()
         gui = client.gui
@@ -276,7 +279,9 @@ class InspectPanel:
         """The rope after candidate A in the model and in the other world, over the state."""
         scene = self.client.scene
         points = [np.asarray(self.inspector.view.nodes_k3)] if self.inspector.view else []
-        with self.client.atomic():
+        with self._drawing() as on, self.client.atomic():
+            if not on:
+                return
             for name, nodes, colour in (
                 ("model", model_k3, MODEL_AFTER),
                 ("world", world_k3, WORLD_AFTER),
@@ -293,8 +298,8 @@ class InspectPanel:
                     opacity=0.85,
                 )
                 points.append(nodes)
-        if points:
-            self._frame(np.concatenate(points))
+            if points:
+                self._frame(np.concatenate(points))
 
     def run_search(self) -> None:
         """Start the lookahead search (progress and tree update as it runs; it can be
@@ -409,8 +414,7 @@ class InspectPanel:
         """Draw the inspected rope and its cloud in place of the labelling view, framed."""
         nodes = np.asarray(view.nodes_k3)
         self.compare_result.content = ""
-        with self.client.atomic():
-            self._enter_view()
+        with self._drawing(enter=True), self.client.atomic():
             self.client.scene.remove_by_name("/inspect/compare")
             self.client.scene.add_mesh_simple(
                 "/inspect/rope",
@@ -426,18 +430,26 @@ class InspectPanel:
                 point_shape="circle",
                 precision="float32",
             )
-        self._frame(np.concatenate([nodes, np.asarray(view.cloud_n3)]))
+            self._frame(np.concatenate([nodes, np.asarray(view.cloud_n3)]))
 
     def draw_3d(self, *, reframe: bool = False) -> None:
         """Draw (or hide) candidate A's registration over the inspected state; ``reframe``
-        points the camera at all of it."""
-        scene = self.client.scene
+        points the camera at all of it. Nothing is drawn once the user has left Inspect's view."""
         on = bool(self.show_3d.value)
         self.legend.visible = on
-        scene.remove_by_name("/inspect/registration")
         view = self.inspector.view
         picked = self._picked()
-        if view is None or not picked:
+        # The registration is computed outside the scene's lock (it can take a while).
+        reg = self.inspector.registration(picked[0]) if view is not None and picked and on else None
+        with self._drawing() as showing:
+            if showing:
+                self._draw_3d(reframe=reframe, registration=reg)
+
+    def _draw_3d(self, *, reframe: bool, registration: RegistrationView | None) -> None:
+        scene = self.client.scene
+        scene.remove_by_name("/inspect/registration")
+        view = self.inspector.view
+        if view is None or not self._picked():
             return
         nodes = np.asarray(view.nodes_k3)
         # The rope half see-through while the registration is shown: the clouds lie on it.
@@ -446,13 +458,13 @@ class InspectPanel:
             tube_vertices(nodes, ROPE_RADIUS),
             tube_faces(len(nodes), 12),
             color=ROPE_COLOUR,
-            opacity=0.5 if on else 1.0,
+            opacity=0.5 if registration is not None else 1.0,
         )
-        if not on:
+        if registration is None:
             if reframe:
                 self._frame(np.concatenate([nodes, np.asarray(view.cloud_n3)]))
             return
-        reg = self.inspector.registration(picked[0])
+        reg = registration
         with self.client.atomic():
             scene.add_point_cloud(
                 "/inspect/registration/demo_cloud",

@@ -6,10 +6,11 @@ grippers/{left,right}, candidates/{rank}/{path_g,grasp_i,release_i,label}, warpe
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any, Literal, TypeVar
 
@@ -175,6 +176,17 @@ class SceneDrawer:
         self.showing: SceneView = "label"
         self.scene.on_click()(self._scene_click)
 
+    @contextlib.contextmanager
+    def drawing(self, view: SceneView, *, enter: bool = False) -> Iterator[bool]:
+        """Hold the scene to draw into ``view`` (shown first if ``enter``); yields whether it is
+        on screen. A slow drawer (a loading Inspect) checks it here, under the lock that
+        ``show_only`` takes, so it never draws into a view the user has left."""
+        with self._lock:
+            if enter:
+                self.show_only(view)
+            yield self.showing == view
+
+    @_serialised
     def show_only(self, view: SceneView) -> None:
         """Show one of the tab's 3D views: the labelling one (hidden, kept, while another
         shows), Inspect's state (/inspect) or a playback (/playback); the other two go."""

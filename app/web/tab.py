@@ -76,7 +76,7 @@ class LabelTab:
                 self.inspector,
                 current_nodes=lambda: None if self.session is None else self.session.nodes_k3,
                 start_nodes=app.start_nodes,
-                enter_view=lambda: self.drawer.show_only("inspect"),
+                drawing=lambda enter=False: self.drawer.drawing("inspect", enter=enter),
                 frame=self.drawer.frame_points,
                 back=self.back_to_labelling,
             )
