@@ -106,6 +106,7 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
         overlap=getattr(args, "overlap", 0.0),
         task=task,
     )
+    print(resources.load_start_scans(defaults.scans_path(level, "train", task)))
     store = open_store(db_url(args), create=True, auto_upgrade=True, persistent=True)
     try:
         store.check_task(task)  # a store holding another task's labels is refused

@@ -52,10 +52,77 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_flag(gen, "--force", detail="here: task sets already at --out-dir (shipped ones too)")
     add_no_progress_argument(gen)
     gen.set_defaults(func=run_generate)
+    scans = sub.add_parser(
+        "scans",
+        help="precompute library-scan summaries of a level's training starts (for Suggest)",
+        description="Register the level's training starts in a throw-away labelling store, "
+        "exactly as `knotlab app` does, scan each stored start cloud against the library and "
+        "write the summaries (registration costs, grasp distances) the app's Suggest scores "
+        "them from. Shipped as scans_<level>_train.npz beside the task sets.",
+    )
+    add_task_argument(scans)
+    add_flag(scans, "--level")
+    add_flag(scans, "--library", detail="default: the task's shipped library")
+    add_flag(
+        scans, "--model", detail="whose landmark weights to add (the shipped one unless --library)"
+    )
+    add_flag(scans, "--out", detail="default: the task's shipped scans_<level>_train.npz")
+    add_flag(scans, "--force", detail="here: a scans file already at --out (a shipped one too)")
+    add_no_progress_argument(scans)
+    scans.set_defaults(func=run_scans)
     info = sub.add_parser("info", help="summarise a task-set file")
     info.add_argument("path", help="task-set file (.npz)")
     add_flag(info, "--json")
     info.set_defaults(func=run_info)
+
+
+def run_scans(args: argparse.Namespace) -> int:
+    """Scan every training start of the level as the app stores it; write the summaries."""
+    import tempfile
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from knotlab.app import defaults
+    from knotlab.app.options import check_input, task_of
+    from knotlab.app.web.resources import load_resources
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.labeling_db.store import open_store
+
+    task, level = task_of(args), resolve_level(args)
+    library = check_input(library_file(args), flag="--library", kind="demo library")
+    # The shipped model goes with the shipped library; another library's scans get a model's
+    # landmark weights only when --model names one.
+    model_path = Path(args.model) if args.model else None
+    if model_path is None and not args.library:
+        model_path = defaults.model_path(task)
+    if model_path is not None:
+        check_input(model_path, flag="--model", kind="Q-model")
+    out = Path(args.out) if args.out else defaults.scans_path(level, "train", task)
+    check_output(out, flag="--out", force=args.force, kind="scans file")
+    resources = load_resources(
+        library, defaults.task_set_path(level, "train", task), top_k=1, task=task
+    )
+    t0 = time.perf_counter()
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        open_store(f"sqlite:///{tmp}/starts.db", create=True) as store,
+    ):
+        resources.register_starts(store, level)
+        clouds = [s.cloud_n3 for s in store.start_states_to_label()]
+    featurizer = (
+        resources.agent.featurizer
+        if model_path is None
+        else resources.add_model(QModel.load(model_path), str(model_path)).featurizer
+    )
+    for cloud in tqdm(clouds, desc="scanning starts", disable=args.no_progress):
+        resources.start_scans.features(featurizer, cloud)
+    resources.start_scans.save(out)
+    print(
+        f"wrote {len(resources.start_scans)} start-scan summaries of {level} to {out} "
+        f"in {time.perf_counter() - t0:.0f} s"
+    )
+    return 0
 
 
 def run_generate(args: argparse.Namespace) -> int:

@@ -32,6 +32,11 @@ def task_set_path(level: str, split: str, task: str = DEFAULT_TASK) -> Path:
     return get_task(task).files.task_set_path(level, split)
 
 
+def scans_path(level: str, split: str, task: str = DEFAULT_TASK) -> Path:
+    """The shipped scan summaries of a task set's start clouds (used if present)."""
+    return get_task(task).files.scans_path(level, split)
+
+
 def shipped_dirs() -> tuple[Path, ...]:
     """Folders whose files no command replaces without --force (shipped data and results)."""
     from knotlab.core.tasks import task_names

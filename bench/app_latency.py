@@ -4,8 +4,9 @@ Prints: page ready (goto until the first state's candidates are in the scene); n
 candidates drawn (R: claim a start, observe, scan the library, rank, draw; median and p95);
 Enter to the first animation frame; and the same two with 3 more tabs labelling at once
 (driven server-side by threads: try, judge, next, with --think s between their actions).
-Targets: candidates drawn within 0.3 s median, 0.5 s p95; page
-ready within 3 s. Usage: python bench/app_latency.py [--samples 20] [--tries 5]
+Then Suggest over all unlabelled starts (first click, then again). Targets: candidates drawn within
+0.3 s median, 0.5 s p95; page ready within 3 s; Suggest within 10 s.
+Usage: python bench/app_latency.py [--samples 20] [--tries 5]
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from knotlab.core.machine import machine_line
 from tests.browser.conftest import CHROMIUM, CHROMIUM_ARGS, open_tab, start_app, wait_until
 
 
@@ -102,6 +104,23 @@ def measure_try(tab, n: int) -> list[float]:
     return out
 
 
+def measure_suggest(tab, app, n: int) -> list[float]:
+    """Seconds from clicking Suggest to every unlabelled start ranked (first click: no landmark
+    weights known yet; later ones: all known)."""
+    page, panels = tab.page, tab.server_tab.panels
+    page.get_by_role("tab", name="Model").click()
+    out = []
+    for _ in range(n):
+        panels.suggest_status.content = ""  # the last result's text: the wait sees a new one
+        t0 = time.perf_counter()
+        page.get_by_role("button", name="Suggest what to label next").click()
+        wait_until(lambda: "starts ranked by" in panels.suggest_status.content, 300, "the order")
+        out.append(time.perf_counter() - t0)
+        wait_until(lambda: not app._suggesting, 10, "the end")
+    page.get_by_role("tab", name="Label").click()
+    return out
+
+
 def _busy_labeller(tab, stop: threading.Event, think: float) -> None:
     """Another expert: try, judge, next; ``think`` s between actions (0: flat out)."""
     s = tab.server_tab
@@ -131,6 +150,7 @@ def main() -> int:
     p.add_argument("--think", type=float, default=2.0, help="s the 3 other experts wait per action")
     p.add_argument("--sim-workers", type=int, default=2, help="try processes of the app")
     args = p.parse_args()
+    print(machine_line())
     from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
@@ -164,6 +184,11 @@ def main() -> int:
                 _row("  server share (session + draw calls), 1 tab", SERVER["1"]),
                 _row("Enter to first animation frame, 1 tab", measure_try(tab, args.tries)),
                 _row("accept (Y) to next state drawn, 1 tab", measure_accept(tab, args.tries)),
+            ]
+            suggest = measure_suggest(tab, app, 3)
+            rows += [
+                _row("Suggest, all unlabelled starts, first click", suggest[:1]),
+                _row("Suggest again (same model)", suggest[1:]),
             ]
             others = [open_tab(browser, app, f"busy{i}") for i in range(3)]
             stop = threading.Event()

@@ -18,11 +18,12 @@ import numpy as np
 from knotlab.core.agent import Agent
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.demos.tasks import TaskSet
-from knotlab.core.errors import InvalidInputError
+from knotlab.core.errors import InvalidInputError, KnotlabError
 from knotlab.core.jsonsafe import json_safe
 from knotlab.core.selection.agreement import OverlapPolicy
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.selection.qmodel import QModel
+from knotlab.core.selection.scan_cache import ScanCacheIdentity, ScanSummaryCache
 from knotlab.core.tasks import check_task_of, get_task
 from knotlab.labeling_db.records import StateProvenance
 from knotlab.labeling_db.store import Store, StoredExecution
@@ -243,6 +244,21 @@ class AppResources:
         self._lock = threading.Lock()
         self._models: dict[str, RankingModel] = {}
         self._current: RankingModel = RankingModel(None, "nearest neighbour", None, self.agent)
+        # Library-scan summaries of start clouds, shared by every model (they do not depend on
+        # one): what lets Suggest score all the starts in seconds.
+        self.start_scans = ScanSummaryCache(ScanCacheIdentity.of(self._nn_featurizer))
+
+    def load_start_scans(self, path: Path) -> str:
+        """Take precomputed scan summaries from ``path`` if it fits this library; a line saying
+        what happened (a missing or unfitting file is not an error: scans are then made live)."""
+        if not path.exists():
+            return f"no precomputed start scans ({path.name}): Suggest scans each start once"
+        try:
+            loaded = ScanSummaryCache.load(path, self.start_scans.identity)
+        except (KnotlabError, OSError, ValueError) as exc:
+            return f"precomputed start scans not used: {exc}"
+        self.start_scans = loaded
+        return f"{len(loaded)} precomputed start scans from {path.name}"
 
     # --- models
     def add_model(self, model: QModel, source: str) -> RankingModel:

@@ -16,7 +16,7 @@ Shape suffix: a = demos (actions).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
 from typing import TYPE_CHECKING, Literal
@@ -24,14 +24,14 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.registration import ScanResult
 from knotlab.core.seeds import text_uniform
 from knotlab.core.selection.qmodel import QModel
-from knotlab.core.selection.ranking import demo_scores, rank_order
+from knotlab.core.selection.ranking import RegisteredDemos, demo_scores, rank_order
 
 if TYPE_CHECKING:  # annotations only
     from knotlab.core.demos.tasks import RopeTask
     from knotlab.core.selection.features import LibraryFeaturizer
+    from knotlab.core.selection.scan_cache import ScanSummaryCache
 
 RankBy = Literal["combined", "margin", "disagreement"]
 RANK_BY: tuple[str, ...] = ("combined", "margin", "disagreement")
@@ -107,9 +107,9 @@ def rank_for_labelling(
 
 
 def score_scan(
-    key: str, scan: ScanResult, phi_ad: np.ndarray, model: QModel, demo_keys: Sequence[str]
+    key: str, scan: RegisteredDemos, phi_ad: np.ndarray, model: QModel, demo_keys: Sequence[str]
 ) -> AcquisitionScore:
-    """A state's score from its library scan: Q margin, and the NN and greedy choices."""
+    """A state's score from its scan (or summary): Q margin, and the NN and greedy choices."""
     q_a = demo_scores(scan, phi_ad, model)
     choices = {}
     for name, order in (
@@ -119,6 +119,29 @@ def score_scan(
         if len(order):
             choices[name] = demo_keys[int(order[0])]
     return score_state(key, q_a, choices)
+
+
+def score_starts(
+    starts: Sequence[tuple[str, np.ndarray]],
+    featurizer: LibraryFeaturizer,
+    model: QModel,
+    scans: ScanSummaryCache,
+    *,
+    stop: Callable[[], bool] = lambda: False,
+    report: Callable[[int, int], None] = lambda done, total: None,
+) -> list[AcquisitionScore]:
+    """`score_scan` of every keyed start cloud from its scan summary and landmark weights
+    (taken from ``scans``, or computed and kept there); ``stop`` is asked before each start,
+    ``report(done, total)`` after."""
+    keys = featurizer.library.keys
+    out = []
+    for key, cloud in starts:
+        if stop():
+            break
+        made = scans.features(featurizer, cloud)
+        out.append(score_scan(key, made.summary, made.phi_ad, model, keys))
+        report(len(out), len(starts))
+    return out
 
 
 def score_clouds(

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -44,6 +45,7 @@ from knotlab.core.arrays import cloud_digest
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.registration import SCAN, LibraryRegistrar, RegistrationParams, ScanResult
+from knotlab.core.registration.params import COST_NAMES
 from knotlab.core.selection.compatibility import check_feature_names, check_observation
 from knotlab.core.selection.feature_spec import FeatureSpec
 from knotlab.core.selection.landmarks import Landmarks
@@ -58,7 +60,30 @@ _RANK = ("nn_rel", "nn_rank_0", "nn_rank_1", "nn_rank_2", "nn_rank_10")
 _RANK_INDICATOR = (False, True, True, True, False)
 _RANK_CAP = 10  # ranks beyond this all look alike (the oracle tries 10 candidates)
 _MAX_MARGIN_POINTS = 40  # trajectory points per demo used for margins (subsampled evenly)
+SUMMARY_COSTS = COST_NAMES[:4]  # map_fwd, map_bwd, bend_f, bend_g: the features' costs
+_LANDMARK_MEMO_STATES = 4096  # states whose landmark weights a featurizer keeps (70 floats each)
 _MEMO_STATES = 32  # scans (and their features) a featurizer keeps, by the cloud's exact bytes
+
+
+@dataclass(frozen=True)
+class ScanSummary:
+    """What phi(s, .) needs of a state's library scan, without the warps: per demo a the four
+    cost columns the features use (SUMMARY_COSTS, +inf where not ok), whether it registered, and
+    the raw grasp distance (m; NaN where not ok). Small enough to keep for every start state,
+    and model-independent."""
+
+    costs_ac: np.ndarray
+    ok_a: np.ndarray
+    grasp_a: np.ndarray
+
+    @property
+    def nn_cost_a(self) -> np.ndarray:
+        """map_fwd + map_bwd + bend_f + bend_g per demo (as ScanResult's)."""
+        return self.costs_ac.sum(axis=1)
+
+    def cost(self, name: str) -> np.ndarray:
+        """One cost column by name (one of SUMMARY_COSTS)."""
+        return self.costs_ac[:, SUMMARY_COSTS.index(name)]
 
 
 class _ScanMemo:
@@ -144,6 +169,8 @@ class LibraryFeaturizer:
         self.observation = ObservationModel.of_library_metadata(library.metadata)
         self._clouds = library.clouds()
         self._memo = _ScanMemo(_MEMO_STATES)
+        self._landmark_memo: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._landmark_lock = threading.Lock()
         self._steps_a = library.step_indices()
         self._phase_steps = tuple(int(k) for k in np.unique(self._steps_a))
         self._phase_onehot_ak = (self._steps_a[:, None] == np.array(self._phase_steps)).astype(
@@ -152,6 +179,7 @@ class LibraryFeaturizer:
         self._grasp_pts = _grasp_points(library)
         self._margin_pts = _margin_points(library)
         self.landmarks = landmarks if landmarks is not None and len(landmarks) else None
+        self.landmark_hash = self.landmarks.content_hash() if self.landmarks is not None else None
         self.rank_features = bool(rank_features)
         self._landmark_key = (
             f"landmarks-{self.landmarks.content_hash()}" if self.landmarks is not None else None
@@ -289,32 +317,77 @@ class LibraryFeaturizer:
         return self._features_now(scan, cloud_n3)
 
     def _features_now(self, scan: ScanResult, cloud_n3: np.ndarray) -> np.ndarray:
+        return self.features_from_summary(self.summarise(scan, cloud_n3), cloud_n3)
+
+    def summarise(self, scan: ScanResult, cloud_n3: np.ndarray) -> ScanSummary:
+        """What the features need of a scan (costs, which registered, grasp distances): small,
+        model-independent, and enough to rebuild phi_ad bit for bit."""
         ok = np.asarray(scan.ok_a, dtype=bool)
+        tree = cKDTree(np.asarray(cloud_n3, dtype=float))
+        grasp = np.full(self.n_actions, np.nan)
+        for a, pts in enumerate(self.warped_points(scan, self._grasp_pts)):
+            if ok[a]:
+                grasp[a] = tree.query(pts)[0].max()
+        costs = np.column_stack([scan.cost(name) for name in SUMMARY_COSTS])
+        return ScanSummary(costs.astype(float), ok, grasp)
+
+    def features_from_summary(
+        self,
+        summary: ScanSummary,
+        cloud_n3: np.ndarray,
+        landmark_weights: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """phi_ad from a state's scan summary (and its landmark weights, if this featurizer has
+        landmarks: computed here unless given)."""
+        ok = summary.ok_a
         if not ok.any():
             raise InvalidInputError("registration failed for every demo: no features")
+        if len(ok) != self.n_actions:
+            raise InvalidInputError(
+                f"a scan summary of {len(ok)} demos does not fit this library of {self.n_actions}"
+            )
         c = np.column_stack(
-            [scan.cost("map_fwd") + scan.cost("map_bwd"), scan.cost("bend_f"), scan.cost("bend_g")]
+            [
+                summary.cost("map_fwd") + summary.cost("map_bwd"),
+                summary.cost("bend_f"),
+                summary.cost("bend_g"),
+            ]
         )
         c = _fill_failed(c, ok)
         quad = np.column_stack([c[:, i] * c[:, j] for i in range(3) for j in range(i, 3)])
-        tree = cKDTree(np.asarray(cloud_n3, dtype=float))
-        grasp = np.empty(self.n_actions)
-        for a, pts in enumerate(self.warped_points(scan, self._grasp_pts)):
-            grasp[a] = tree.query(pts)[0].max() if ok[a] else np.nan
-        grasp = _fill_failed(grasp[:, None], ok)
-        phase_k = self.phase(scan)
+        grasp = _fill_failed(summary.grasp_a[:, None], ok)
+        phase_k = self.phase(summary)
         phase_ak = np.broadcast_to(phase_k, (self.n_actions, phase_k.size))
         match = self._phase_onehot_ak @ phase_k
         columns = [c, quad, grasp, phase_ak, match]
         if self.rank_features:
-            columns.append(rank_columns(scan.nn_cost_a))
+            columns.append(rank_columns(summary.nn_cost_a))
         if self.landmarks is not None:
-            near_l = self.landmark_weights(cloud_n3)
+            near_l = (
+                self.landmark_weights(cloud_n3) if landmark_weights is None else landmark_weights
+            )
             columns.append(np.broadcast_to(near_l, (self.n_actions, near_l.size)))
         return np.column_stack([*columns, np.eye(self.n_actions)])
 
     def landmark_weights(self, cloud_n3: np.ndarray) -> np.ndarray:
-        """Softmax over landmarks of the relative registration cost (all zero if none register)."""
+        """Softmax over landmarks of the relative registration cost (all zero if none register);
+        the last few thousand states' weights are kept (a pure function of the cloud)."""
+        assert self.landmarks is not None
+        key = cloud_digest(cloud_n3)
+        with self._landmark_lock:
+            hit = self._landmark_memo.get(key)
+            if hit is not None:
+                self._landmark_memo.move_to_end(key)
+                return hit
+        weights = self._landmark_weights_now(cloud_n3)
+        weights.flags.writeable = False
+        with self._landmark_lock:
+            self._landmark_memo[key] = weights
+            while len(self._landmark_memo) > _LANDMARK_MEMO_STATES:
+                self._landmark_memo.popitem(last=False)
+        return weights
+
+    def _landmark_weights_now(self, cloud_n3: np.ndarray) -> np.ndarray:
         assert self.landmarks is not None
         scan = self.registrar.scan(
             cloud_n3,
@@ -327,7 +400,7 @@ class LibraryFeaturizer:
             return np.zeros(len(cost))
         return _soft_nearest(cost, self.phase_temperature)
 
-    def phase(self, scan: ScanResult) -> np.ndarray:
+    def phase(self, scan: ScanResult | ScanSummary) -> np.ndarray:
         """Soft phase: softmax over demos of -(cost/min cost - 1)/T, summed per demo step."""
         return _soft_nearest(scan.nn_cost_a, self.phase_temperature) @ self._phase_onehot_ak
 

@@ -8,6 +8,7 @@ Shape suffix: a = demos (actions).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -28,7 +29,20 @@ class RankedDemo:
     nn_cost: float  # bidirectional registration cost (the nearest-neighbour score)
 
 
-def demo_scores(scan: ScanResult, phi_ad: np.ndarray | None, model: QModel | None) -> np.ndarray:
+class RegisteredDemos(Protocol):
+    """What scoring needs of a scan: each demo's registration cost and whether it registered
+    (a `ScanResult`, or its summary)."""
+
+    @property
+    def nn_cost_a(self) -> np.ndarray: ...
+
+    @property
+    def ok_a(self) -> np.ndarray: ...
+
+
+def demo_scores(
+    scan: RegisteredDemos, phi_ad: np.ndarray | None, model: QModel | None
+) -> np.ndarray:
     """Score of every demo (higher = better): Q with a model, else -nn_cost; -inf if unusable."""
     if model is None:
         raw = -np.asarray(scan.nn_cost_a, dtype=float)

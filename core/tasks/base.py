@@ -56,6 +56,7 @@ class TaskFiles:
     library: str = "demos_default.npz"
     model: str = "model_default.npz"
     task_set_pattern: str = "tasks_{level}_{split}.npz"
+    scans_pattern: str = "scans_{level}_{split}.npz"
 
     def path(self, name: str) -> Path:
         """A shipped file's path on disk (installed as package data, read through
@@ -76,6 +77,10 @@ class TaskFiles:
     def task_set_path(self, level: str, split: str) -> Path:
         """The shipped task set of one perturbation level and split."""
         return self.path(self.task_set_pattern.format(level=level, split=split))
+
+    def scans_path(self, level: str, split: str) -> Path:
+        """Precomputed library-scan summaries of a task set's start clouds (may be absent)."""
+        return self.path(self.scans_pattern.format(level=level, split=split))
 
     def load_task_set(self, level: str, split: str) -> TaskSet:
         """The shipped start ropes of one level and split (e.g. main, test)."""

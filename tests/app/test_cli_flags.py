@@ -121,6 +121,7 @@ def test_every_declared_flag_is_used_and_hidden_spellings_stay_hidden() -> None:
 TASK_COMMANDS = [
     "demos generate",
     "tasks generate",
+    "tasks scans",
     "label",
     "labels tries",
     "train",

@@ -10,6 +10,7 @@ import numpy as np
 
 from knotlab.app.web.scene import candidate_label
 from knotlab.app.web.session import Phase
+from knotlab.core.selection.scan_cache import ScanSummaryCache
 from tests.browser.conftest import keep_shot, open_tab, wait_until
 from tests.browser.test_labelling import _scene_has
 
@@ -365,9 +366,14 @@ def test_suggest_shows_progress_and_cancel_stops_it(tabs, app):
     tab = tabs("sug")
     page = tab.page
     panels = tab.server_tab.panels
+    # Without precomputed scans (as for a library of one's own) Suggest scans every start:
+    # long enough to watch its progress and cancel it.
+    shipped = app.resources.start_scans
+    app.resources.start_scans = ScanSummaryCache(shipped.identity)
     page.get_by_role("tab", name="Model").click()
     page.get_by_role("button", name="Suggest what to label next").click()
-    wait_until(lambda: "scoring start 3 of" in panels.suggest_status.content, 60, "progress")
+    wait_until(lambda: "scoring start" in panels.suggest_status.content, 60, "progress")
+    app.resources.start_scans = shipped
     assert panels.suggest_bar.visible and 0 < panels.suggest_bar.value < 100
     keep_shot(page, "suggest_progress")
     page.get_by_role("button", name="Cancel suggesting").click()
@@ -379,6 +385,12 @@ def test_suggest_shows_progress_and_cancel_stops_it(tabs, app):
     assert not panels.suggest_button.disabled  # and it can be started again
     page.get_by_text("cancelled after").wait_for(timeout=10_000)
     keep_shot(page, "suggest_cancelled")
+    # With the shipped scans of the level's starts nothing is scanned: every start is a hit.
+    misses = shipped.misses
+    page.get_by_role("button", name="Suggest what to label next").click()
+    wait_until(lambda: "starts ranked by" in panels.suggest_status.content, 60, "the ranking")
+    assert shipped.misses == misses and shipped.hits >= 290
+    assert len(app.suggested) >= 290
 
 
 def test_the_lookahead_search_shows_progress_and_cancel_leaves_the_app_usable(tabs):

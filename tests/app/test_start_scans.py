@@ -1,0 +1,71 @@
+"""The shipped start scans are those of the clouds the app stores for each level's starts, so the
+app's Suggest scans nothing; `knotlab tasks scans` writes them and will not overwrite them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from knotlab.app import cli, defaults
+from knotlab.app.web.resources import load_resources
+from knotlab.core.npzfile import read_npz
+from knotlab.labeling_db.store import open_store
+from tests.minilib import mini_library
+
+
+@pytest.mark.parametrize("level", ["main", "hard"])
+def test_the_shipped_scans_cover_every_start_the_app_stores(level, tmp_path) -> None:
+    resources = load_resources(
+        defaults.library_path(), defaults.task_set_path(level, "train"), top_k=5
+    )
+    note = resources.load_start_scans(defaults.scans_path(level, "train"))
+    assert note.startswith("300 precomputed start scans"), note
+    with open_store(f"sqlite:///{tmp_path}/s.db", create=True) as store:
+        resources.register_starts(store, level)
+        clouds = [s.cloud_n3 for s in store.start_states_to_label()]
+    assert all(resources.start_scans.get(c) is not None for c in clouds)
+
+
+def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
+    """Run as a user would (a fresh process: one BLAS thread, as every knotlab command)."""
+    out = tmp_path / "scans_main_train.npz"
+    argv = ["tasks", "scans", "--level", "main", "--out", str(out), "--no-progress"]
+    subprocess.run([sys.executable, "-m", "knotlab.app.cli", *argv], check=True, timeout=300)
+    shipped = defaults.scans_path("main", "train")
+    made, header = read_npz(out, "scans")
+    if header["made_on"] == read_npz(shipped, "scans")[1]["made_on"]:
+        assert out.read_bytes() == shipped.read_bytes()  # the same kernel: the same bytes
+        return
+    stored, _ = read_npz(shipped, "scans")
+    assert np.array_equal(made["digests"], stored["digests"])
+    assert np.array_equal(made["ok_sa"], stored["ok_sa"])
+    for name in ("costs_sac", "grasp_sa"):  # another kernel: the last bits, carried on
+        assert np.allclose(made[name], stored[name], rtol=2e-3, atol=1e-9, equal_nan=True), name
+
+
+def test_a_library_of_ones_own_uses_no_shipped_scans(tmp_path) -> None:
+    resources = load_resources(defaults.library_path(), defaults.task_set_path("main", "train"), 5)
+    assert "no precomputed start scans" in resources.load_start_scans(tmp_path / "none.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    assert "not used" in resources.load_start_scans(bad)
+    assert len(resources.start_scans) == 0
+
+
+def test_tasks_scans_refuses_to_overwrite_and_writes_elsewhere(tmp_path, capsys) -> None:
+    shipped = defaults.scans_path("main", "train")
+    before = shipped.read_bytes()
+    assert cli.main(["tasks", "scans", "--level", "main", "--no-progress"]) == 2
+    assert "--force" in capsys.readouterr().err and shipped.read_bytes() == before
+    lib = mini_library(2).save(tmp_path / "lib.npz")
+    out = tmp_path / "scans.npz"
+    argv = ["tasks", "scans", "--library", str(lib), "--out", str(out), "--no-progress"]
+    assert cli.main(argv) == 0
+    assert "wrote 300 start-scan summaries of main" in capsys.readouterr().out
+    resources = load_resources(lib, defaults.task_set_path("main", "train"), 1)
+    assert resources.load_start_scans(out).startswith("300 precomputed")
+    assert cli.main(argv) == 2  # its own file too: only with --force
+    assert cli.main([*argv, "--force"]) == 0
