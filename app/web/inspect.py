@@ -20,6 +20,7 @@ from knotlab.app.web.sim_pool import PoolRunner, SimPool
 from knotlab.core.execution.compare import ModelAndWorld
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.planner import DemoTransferer, TransferPlan
+from knotlab.core.selection.decision import LevelDecision
 from knotlab.core.selection.explain import Contribution, PolicyChoices, feature_contributions
 from knotlab.core.selection.ranking import RankedDemo, rank_demos
 from knotlab.core.world.sim import RopeWorld
@@ -68,6 +69,7 @@ class InspectView:
     search_error: str | None = None
     search_expansions: int = 0  # simulated so far
     search_cancelled: bool = False
+    search_levels: int = 0  # levels the running search plans (its depth)
 
 
 class SearchCancelledError(Exception):
@@ -88,6 +90,7 @@ class Inspector:
         self._ranking: RankingModel | None = None
         self._search: threading.Thread | None = None
         self._cancel = threading.Event()  # the running search's; set: stop at its next expansion
+        self._keep = False  # with a cancel: keep the choice of the levels finished so far
         self._generation = 0  # a newer load makes an older search's result stale
         self._other_worlds: dict = {}  # physics -> RopeWorld: worlds unlike the model, to compare
 
@@ -149,8 +152,12 @@ class Inspector:
             snapshot = self.world.snapshot()
         budget = max(1, depth * width)
         cancel = self._cancel = threading.Event()
+        self._keep = False
         view.search_progress, view.search_expansions = 0.0, 0
         view.search_cancelled, view.search_error = False, None
+        view.search_levels = depth
+        choices = view.choices
+        choices.lookahead, choices.lookahead_info, choices.lookahead_levels = None, {}, (0, depth)
 
         def counted() -> None:
             """One expansion done: report it, or stop the search here if it was cancelled."""
@@ -158,6 +165,17 @@ class Inspector:
                 raise SearchCancelledError
             view.search_expansions += 1
             view.search_progress = min(0.99, view.search_expansions / budget)
+            on_update(view)
+
+        def on_level(report: LevelDecision) -> None:
+            """A level finished: its choice is shown at once (and may be kept)."""
+            if generation != self._generation:
+                return
+            view.search_levels = report.levels
+            choices.lookahead = report.decision.action
+            info = report.decision.info
+            choices.lookahead_info = {**info, "wall_s": info.get("search_s", 0.0)}
+            choices.lookahead_levels = (report.level, report.levels)
             on_update(view)
 
         def search() -> None:
@@ -178,18 +196,28 @@ class Inspector:
                         ctx = agent.context(self.world, view.cloud_n3)
                         ctx.transferer = transferer
                         ctx._phi_ad = phi
+                        ctx.on_level = on_level
                         decision = agent.policy.choose(ctx)
                     finally:
                         self.world.restore(snapshot)
                 if generation != self._generation:
                     return
-                view.choices.lookahead = decision.action
-                view.choices.lookahead_name = agent.name
-                view.choices.lookahead_info = {**decision.info, "wall_s": time.perf_counter() - t0}
+                choices.lookahead = decision.action
+                choices.lookahead_name = agent.name
+                choices.lookahead_info = {**decision.info, "wall_s": time.perf_counter() - t0}
+                choices.lookahead_levels = None
             except SearchCancelledError:
-                view.search_cancelled = True
+                finished = choices.lookahead_levels
+                if self._keep and finished is not None and finished[0] > 0:
+                    choices.lookahead_name = agent.name  # the levels so far decide
+                    choices.lookahead_info["wall_s"] = time.perf_counter() - t0
+                else:  # nothing of it is kept
+                    view.search_cancelled = True
+                    choices.lookahead, choices.lookahead_info = None, {}
+                    choices.lookahead_levels = None
             except Exception as exc:  # shown in the panel; the inspector stays usable
                 view.search_error = f"{type(exc).__name__}: {exc}"
+                choices.lookahead, choices.lookahead_levels = None, None
             finally:
                 if runner is not None:  # expansions queued for later levels: nobody wants them
                     runner.drop_prefetched()
@@ -227,10 +255,12 @@ class Inspector:
             self.world.reset(view.nodes_k3)  # the loaded state again, for a search
             return out
 
-    def cancel_lookahead(self) -> bool:
-        """Stop the running search at its next expansion; False when none runs."""
+    def cancel_lookahead(self, *, keep: bool = False) -> bool:
+        """Stop the running search at its next expansion; False when none runs. With ``keep``
+        the choice of the levels finished so far stays (none finished: nothing stays)."""
         if self._search is None or not self._search.is_alive():
             return False
+        self._keep = keep
         self._cancel.set()
         return True
 

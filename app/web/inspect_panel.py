@@ -141,6 +141,13 @@ class InspectPanel:
         self.search_button = gui.add_button("Run lookahead(2, 5)", disabled=True)
         self.search_bar = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.search_status = gui.add_markdown("")
+        self.keep_search_button = gui.add_button(
+            "Keep the choice so far",
+            color="green",
+            icon=viser.Icon.CHECK,
+            visible=False,
+            hint="stop the search: the choice of the levels it finished stands",
+        )
         self.cancel_search_button = gui.add_button(
             "Cancel the search", color="red", icon=viser.Icon.X, visible=False
         )
@@ -160,10 +167,12 @@ class InspectPanel:
         )
         self.compare_result = gui.add_markdown("")
         self._keys_to_index: dict[str, int] = {}
+        self._shown_level = 0  # the search level whose choice the panel shows
         self.inspect_button.on_click(lambda _e: self.run_inspect())
         self.back_button.on_click(lambda _e: back())
         self.search_button.on_click(lambda _e: self.run_search())
         self.cancel_search_button.on_click(lambda _e: self.cancel_search())
+        self.keep_search_button.on_click(lambda _e: self.keep_search())
         self.cand_a.on_update(lambda _e: self.show_candidates())
         self.cand_b.on_update(lambda _e: self.show_candidates())
         self.show_3d.on_update(lambda _e: self.draw_3d(reframe=True))
@@ -302,33 +311,60 @@ class InspectPanel:
                 self._frame(np.concatenate(points))
 
     def run_search(self) -> None:
-        """Start the lookahead search (progress and tree update as it runs; it can be
-        cancelled)."""
+        """Start the lookahead search: an anytime search, its choice shown after each level
+        (the greedy one until then), which a person may keep before the end, or cancel."""
         if not self.inspector.start_lookahead(2, 5, self._on_search):
             self.search_status.content = "a search is running already (or no model to search with)"
             return
+        self._shown_level = 0
         self.search_bar.value = 0.0  # type: ignore[misc]
         self.search_bar.visible = True
-        self.search_status.content = "searching: 0 expansions so far"
+        self.search_status.content = "searching, level 1 of 2: 0 expansions so far"
+        self.keep_search_button.disabled = True
+        self.keep_search_button.visible = True
         self.cancel_search_button.visible = True
         self.search_button.disabled = True
+        if self.inspector.view is not None:
+            self.show(self.inspector.view)
 
     def cancel_search(self) -> None:
         """Stop the running search (it ends at its next expansion; nothing of it is kept)."""
         if self.inspector.cancel_lookahead():
             self.search_status.content = "cancelling the search..."
 
+    def keep_search(self) -> None:
+        """Stop the running search and keep the choice of the levels it finished."""
+        if self.inspector.cancel_lookahead(keep=True):
+            self.search_status.content = "stopping the search, keeping its choice so far..."
+
     def _on_search(self, view: InspectView) -> None:
         self.search_bar.value = 100.0 * view.search_progress  # type: ignore[misc]
+        done, levels = view.choices.lookahead_levels or (0, view.search_levels)
         if view.search_progress < 1.0:
-            self.search_status.content = f"searching: {view.search_expansions} expansions so far"
+            status = (
+                f"searching, level {min(done + 1, levels)} of {levels}: "
+                f"{view.search_expansions} expansions so far"
+            )
+            if done:
+                status += f"; choice after level {done} shown above"
+            self.search_status.content = status
+            self.keep_search_button.disabled = done == 0
+            if done != self._shown_level:  # a level finished: its choice and tree at once
+                self._shown_level = done
+                self.show(view)
             return
         self.search_bar.visible = False
         self.cancel_search_button.visible = False
+        self.keep_search_button.visible = False
         self.search_button.disabled = view.choices.greedy is None
-        self.search_status.content = (
-            "search cancelled: nothing of it is shown" if view.search_cancelled else ""
-        )
+        if view.search_cancelled:
+            self.search_status.content = "search cancelled: nothing of it is shown"
+        elif view.choices.lookahead_levels is not None:
+            self.search_status.content = (
+                f"search stopped after level {done} of {levels}: its choice is kept"
+            )
+        else:
+            self.search_status.content = ""
         self.show(view)
 
     # ------------------------------------------------------------------ drawing
@@ -341,9 +377,17 @@ class InspectPanel:
             return "-" if a is None else f"`{keys[a]}`"
 
         la = name(c.lookahead) if c.lookahead is not None else "(not run yet)"
+        if c.lookahead_levels is not None:
+            done, levels = c.lookahead_levels
+            searching = view.search_progress < 1.0
+            if c.lookahead is None:
+                la = f"(searching level 1 of {levels}...)" if searching else "(not run yet)"
+            else:
+                la += f" after level {done} of {levels}" + (", searching on" if searching else "")
         if view.search_error:
             la = f"failed: {view.search_error}"
-        verdict = "all agree" if c.agree() and c.lookahead is not None else ""
+        final = c.lookahead is not None and c.lookahead_levels is None
+        verdict = "all agree" if c.agree() and final else ""
         self.choices.content = (
             f"**{view.label}**, ranked by {view.model}  \n"
             f"| policy | chooses |\n|---|---|\n| nearest neighbour | {name(c.nn)} |\n"

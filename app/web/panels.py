@@ -150,13 +150,26 @@ class LabelPanels:
                 self.follow_suggested = gui.add_checkbox(
                     "Next rope: the suggested one", False, hint="Model tab: Suggest"
                 )
+            # Disabled until the first state is shown: behind the name prompt they do nothing.
             with gui.add_folder("Actions"):
-                self.try_button = gui.add_button("Try (Enter)", color="blue", icon=icon.PLAYER_PLAY)
-                self.accept_button = gui.add_button("Accept (Y)", color="green", icon=icon.CHECK)
-                self.reject_button = gui.add_button("Reject (N)", color="red", icon=icon.X)
-                self.dead_button = gui.add_button("Dead end (F)", color="orange", icon=icon.SKULL)
-                self.resample_button = gui.add_button("New rope (R)", icon=icon.REFRESH)
-                self.undo_button = gui.add_button("Undo last label (U)", icon=icon.ARROW_BACK_UP)
+                self.try_button = gui.add_button(
+                    "Try (Enter)", color="blue", icon=icon.PLAYER_PLAY, disabled=True
+                )
+                self.accept_button = gui.add_button(
+                    "Accept (Y)", color="green", icon=icon.CHECK, disabled=True
+                )
+                self.reject_button = gui.add_button(
+                    "Reject (N)", color="red", icon=icon.X, disabled=True
+                )
+                self.dead_button = gui.add_button(
+                    "Dead end (F)", color="orange", icon=icon.SKULL, disabled=True
+                )
+                self.resample_button = gui.add_button(
+                    "New rope (R)", icon=icon.REFRESH, disabled=True
+                )
+                self.undo_button = gui.add_button(
+                    "Undo last label (U)", icon=icon.ARROW_BACK_UP, disabled=True
+                )
             with gui.add_folder("Progress"):
                 self.progress = gui.add_markdown("")
         with tabs.add_tab("Model", icon=icon.BRAIN):

@@ -123,11 +123,38 @@ def framed_points(view: SessionView) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(parts), np.asarray(text_px)
 
 
-def free_box(width: int, height: int) -> tuple[float, float, float, float]:
-    """The canvas pixels (left, top, right, bottom) the side panel leaves free, less a margin."""
-    right = width - PANEL_PX if width >= 2 * PANEL_PX else width
-    m = FRAME_MARGIN_PX
+def free_box(
+    width: int, height: int, pixel_ratio: float = 1.0
+) -> tuple[float, float, float, float]:
+    """The canvas pixels (left, top, right, bottom) the side panel leaves free, less a margin.
+
+    The browser reports its canvas in device pixels (CSS pixels x ``pixel_ratio``, 2 on a
+    high-density screen) while the panel and the margin are sized in CSS pixels."""
+    panel, m = PANEL_PX * pixel_ratio, FRAME_MARGIN_PX * pixel_ratio
+    right = width - panel if width >= 2 * panel else width
     return (m, m, right - m, height - m)
+
+
+def pixel_ratio_of(client: viser.ClientHandle, timeout: float = 3.0) -> float:
+    """The browser's device pixel ratio (1.0 if it does not say within ``timeout`` s).
+
+    viser reports the canvas size in device pixels but has no call for the ratio, so the page
+    is asked to put it in its local storage (viser's message for running a script: the one it
+    loads plotly with), which is then read back as any stored item; messages arrive in order."""
+    from viser import _messages  # private: viser has no public call for this message
+
+    # viser keeps a server's items under the "viser-user:" prefix in the page's local storage.
+    script = (
+        "localStorage.setItem('viser-user:knotlab.pixel_ratio', "
+        "String(window.devicePixelRatio || 1))"
+    )
+    try:
+        client._websock_connection.queue_message(_messages.RunJavascriptMessage(source=script))
+        value = client.local_storage.get_item("knotlab.pixel_ratio", timeout=timeout)
+        ratio = float(value) if value else 1.0
+    except (RuntimeError, TimeoutError, ValueError, AttributeError):
+        return 1.0
+    return ratio if 0.5 <= ratio <= 8.0 else 1.0
 
 
 def _xyz(p: np.ndarray) -> tuple[float, float, float]:
@@ -173,6 +200,7 @@ class SceneDrawer:
         )
         self.scene.add_grid("/grid", width=1.6, height=1.2, cell_size=0.1, position=(0, 0, 0.0005))
         self.label_root = self.scene.add_frame("/label", show_axes=False)
+        self.pixel_ratio = 1.0  # the browser's device pixels per CSS pixel (see free_box)
         self.showing: SceneView = "label"
         self.scene.on_click()(self._scene_click)
 
@@ -258,10 +286,13 @@ class SceneDrawer:
         up = np.asarray(cam.up_direction, dtype=np.float64)
         if not np.linalg.norm(up):
             up = np.array([0.0, 0.0, 1.0])
-        box = np.tile(np.asarray(free_box(width, height), dtype=np.float64), (len(points_p3), 1))
+        ratio = self.pixel_ratio
+        box = np.tile(
+            np.asarray(free_box(width, height, ratio), dtype=np.float64), (len(points_p3), 1)
+        )
         if text_px is not None:
-            box[:, 2] -= text_px
-            box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH, 0.0)
+            box[:, 2] -= text_px * ratio
+            box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH * ratio, 0.0)
         position, look_at = frame_points(
             points_p3,
             np.asarray(VIEW_FORWARD),

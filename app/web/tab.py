@@ -21,7 +21,7 @@ from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
-from knotlab.app.web.scene import SceneDrawer
+from knotlab.app.web.scene import SceneDrawer, pixel_ratio_of
 from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError, SessionView
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
@@ -96,6 +96,7 @@ class LabelTab:
     # ------------------------------------------------------------------ start
     def open(self) -> None:
         """Ask for the labeller's name (remembered by the browser) and start labelling."""
+        self.drawer.pixel_ratio = pixel_ratio_of(self.client)
         name = None
         try:
             name = self.client.local_storage.get_item(NAME_KEY, timeout=3.0)

@@ -9,6 +9,7 @@ Shape suffix: a = demos (actions), n = cloud points.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,9 @@ class StepContext:
     # Outcomes shared with other policies on the same task (a bench run with
     # --share-simulations); None: each policy keeps its own (the lookahead's) or none.
     memo: OutcomeMemo | None = None
+    # A search that works in levels (lookahead) reports its choice so far after each finished
+    # level (an anytime search: the app shows it at once); the final decision is the same.
+    on_level: Callable[[LevelDecision], None] | None = None
     _phi_ad: np.ndarray | None = None
 
     @property
@@ -53,6 +57,15 @@ class Decision:
     scores_a: np.ndarray
     info: dict = field(default_factory=dict)
     outcome: ActionOutcome | None = None  # set when the policy already simulated the choice
+
+
+@dataclass(frozen=True)
+class LevelDecision:
+    """A levelled search's decision if it stopped after ``level`` of its ``levels`` levels."""
+
+    level: int
+    levels: int
+    decision: Decision
 
 
 class Policy(ABC):

@@ -42,6 +42,9 @@ class PolicyChoices:
     lookahead: int | None = None
     lookahead_name: str = ""
     lookahead_info: dict = field(default_factory=dict)
+    # (levels finished, levels planned) while the search runs or when a person kept its choice
+    # before the end; None once the whole search decided.
+    lookahead_levels: tuple[int, int] | None = None
 
     def agree(self) -> bool:
         """True when every policy that has chosen picked the same demo."""

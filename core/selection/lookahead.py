@@ -23,7 +23,7 @@ from knotlab.core.execution.expansion import (
     value_child,
 )
 from knotlab.core.execution.memo import OutcomeMemo, snapshot_digest
-from knotlab.core.selection.decision import Decision, Policy, StepContext
+from knotlab.core.selection.decision import Decision, LevelDecision, Policy, StepContext
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores
 
@@ -268,6 +268,13 @@ class LookaheadPolicy(Policy):
                             ctx, next_frontier, len(chosen) - done, level + 2 < ctx.steps_left,
                             early,
                         )  # fmt: skip
+                if ctx.on_level is not None:
+                    so_far = self._decide(
+                        None, root_q, dict(backed), root_outcomes, expansions, t0, False,
+                        reused, list(tree),
+                    )  # fmt: skip
+                    levels = level + 1 if not next_frontier else max_depth
+                    ctx.on_level(LevelDecision(level + 1, levels, so_far))
                 frontier = next_frontier
                 if not frontier:
                     break

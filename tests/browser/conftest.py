@@ -240,6 +240,34 @@ class Tab:
         return self.page.evaluate(PANEL_BOX_JS)
 
 
+def name_field(page):
+    """The name prompt's text field (viser labels it beside, not on, the input)."""
+    return (
+        page.locator("label", has_text="Your name")
+        .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+        .locator("input:not([type='hidden'])")
+    )
+
+
+def open_page(app, context):
+    """A new page of ``context`` on the app, and the server-side tab it became (nothing typed)."""
+    before = {t.client.client_id for t in app.tabs()}
+    page = context.new_page()
+    page.goto(app.url)
+    server_tab = wait_until(
+        lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
+        30,
+        "the server to see the new tab",
+    )
+    return page, server_tab
+
+
+def give_name(page, name: str) -> None:
+    """Type ``name`` in the name prompt and click Start labelling."""
+    name_field(page).fill(name)
+    page.get_by_role("button", name="Start labelling").click()
+
+
 def open_tab(
     browser,
     app,
@@ -268,11 +296,7 @@ def open_tab(
         "the server to see the new client",
     )
     if name is not None:
-        field = (
-            page.locator("label", has_text="Your name")
-            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
-            .locator("input:not([type='hidden'])")
-        )
+        field = name_field(page)
         field.wait_for(timeout=timeout * 1000)
         if submit == "enter":
             field.click()

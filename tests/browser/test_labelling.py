@@ -9,7 +9,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.session import Phase
-from tests.browser.conftest import open_tab, wait_until
+from tests.browser.conftest import give_name, name_field, open_page, open_tab, wait_until
 
 
 def _scene_has(page, name: str) -> bool:
@@ -397,6 +397,28 @@ def test_enter_in_the_name_field_starts_labelling_keyboard_only(tabs):
     assert tab.session.view().phase is Phase.CHOOSING
 
 
+ACTIONS = ("Try (Enter)", "Accept (Y)", "Reject (N)", "Dead end (F)", "New rope (R)", "Undo")
+
+
+def test_actions_are_disabled_behind_the_name_prompt(browser, app):
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        page = context.new_page()
+        page.goto(app.url)
+        page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
+        buttons = [page.locator("button", has_text=a) for a in ACTIONS]
+        assert all(b.is_disabled() for b in buttons), "actions behind the name prompt"
+        name_field(page).fill("ivo")
+        page.get_by_role("button", name="Start labelling").click()
+        # The first state: a new rope and undo can be asked for, Try once a candidate is chosen.
+        page.locator("button", has_text="New rope (R)").and_(page.locator(":enabled")).wait_for(
+            timeout=30_000
+        )
+        assert not page.locator("button", has_text="Undo").is_disabled()
+    finally:
+        context.close()
+
+
 def test_enter_on_the_focused_start_button_starts_labelling(tabs):
     tab = tabs("lin", submit="button-enter")
     assert tab.session.labeller == "lin"
@@ -454,22 +476,9 @@ def test_the_same_labeller_in_a_second_tab_is_offered_to_take_the_episode_over(b
     task = first.session.view().task_id
     # the second tab, another browser: the name, then the offer instead of a second session
     context = browser.new_context(viewport={"width": 1280, "height": 760})
-    page = context.new_page()
     try:
-        before = {t.client.client_id for t in app.tabs()}
-        page.goto(app.url)
-        second = wait_until(
-            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
-            30,
-            "the second tab",
-        )
-        field = (
-            page.locator("label", has_text="Your name")
-            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
-            .locator("input:not([type='hidden'])")
-        )
-        field.fill("tia")
-        page.get_by_role("button", name="Start labelling").click()
+        page, second = open_page(app, context)
+        give_name(page, "tia")
         page.get_by_text("Your episode is open in another tab").wait_for(timeout=20_000)
         assert second.session is None and first.session is not None  # nothing taken yet
         page.get_by_role("button", name="Take it over").click()

@@ -5,13 +5,14 @@ browser framed, a palette apart from the rope, the warped demo cloud visible, no
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 
 from knotlab.app.web.scene import candidate_label
 from knotlab.app.web.session import Phase
 from knotlab.core.selection.scan_cache import ScanSummaryCache
-from tests.browser.conftest import keep_shot, open_tab, wait_until
+from tests.browser.conftest import Tab, give_name, keep_shot, open_page, open_tab, wait_until
 from tests.browser.test_labelling import _scene_has
 
 
@@ -95,6 +96,16 @@ def test_each_new_state_frames_every_candidate_clear_of_the_panel(tabs, app):
     assert_framed(tab, "step 2", "framed_step2")
 
 
+def test_a_high_density_screen_frames_clear_of_the_panel_too(browser, tabs):
+    # The browser reports its canvas in device pixels (2 per CSS pixel here), the panel is
+    # sized in CSS pixels: framing must keep twice the pixels clear.
+    context = browser.new_context(viewport={"width": 1280, "height": 760}, device_scale_factor=2)
+    tab = tabs("hdpi", context=context)
+    assert tab.server_tab.drawer.pixel_ratio == 2.0
+    assert tab.server_tab.client.camera.image_width == 2560
+    assert_framed(tab, "a high-density screen", "framed_dpr2")
+
+
 def test_only_the_selected_candidate_has_a_full_caption_the_rest_rank_badges(tabs):
     tab = tabs("cap")
     tab.press("3")
@@ -138,18 +149,9 @@ def test_a_second_tab_of_the_same_browser_starts_framed(browser, app):
     first = open_tab(browser, app, "two")
     context = first.context
     try:
-        before = {t.client.client_id for t in app.tabs()}
-        page = context.new_page()  # same browser: it remembers the name, and offers a take-over
-        page.goto(app.url)
+        page, server_tab = open_page(app, context)  # same browser: the name is remembered
         page.get_by_role("button", name="Take it over").click(timeout=30_000)
-        server_tab = wait_until(
-            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
-            30,
-            "the second tab",
-        )
         wait_until(lambda: server_tab.ready.is_set(), 30, "the second tab's state")
-        from tests.browser.conftest import Tab
-
         second = Tab(page, context, server_tab, [])
         assert_framed(second, "the second tab", "second_tab")
     finally:
@@ -307,21 +309,8 @@ def test_a_tab_whose_episode_was_taken_over_disables_new_rope_and_undo(browser, 
     first = open_tab(browser, app, "ovr")
     context = browser.new_context(viewport={"width": 1280, "height": 760})
     try:
-        page = context.new_page()
-        before = {t.client.client_id for t in app.tabs()}
-        page.goto(app.url)
-        second = wait_until(
-            lambda: next((t for t in app.tabs() if t.client.client_id not in before), None),
-            30,
-            "the second tab",
-        )
-        field = (
-            page.locator("label", has_text="Your name")
-            .locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
-            .locator("input:not([type='hidden'])")
-        )
-        field.fill("ovr")
-        page.get_by_role("button", name="Start labelling").click()
+        page, second = open_page(app, context)
+        give_name(page, "ovr")
         page.get_by_role("button", name="Take it over").click(timeout=20_000)
         wait_until(lambda: second.ready.is_set(), 30, "the episode in the second tab")
         first.page.get_by_text("taken over in another tab").wait_for(timeout=20_000)
@@ -416,6 +405,47 @@ def test_the_lookahead_search_shows_progress_and_cancel_leaves_the_app_usable(ta
     # The app stays usable: the labeller's try runs on the same simulation workers.
     tab.press("Enter")
     wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 90, "a try after the cancel")
+
+
+def test_the_search_shows_each_levels_choice_and_the_labeller_may_keep_it(tabs):
+    tab = tabs("any")
+    page = tab.page
+    view = _inspect(tab, "test task", 2)
+    panel = tab.server_tab.inspect
+    wait_until(lambda: "Registration costs" in panel.compare.content, 30, "the panel filled")
+    wait_until(lambda: "| greedy Q | `" in panel.choices.content, 10, "greedy's choice at once")
+    keep = page.get_by_role("button", name="Keep the choice so far")
+    # The search waits after its first level until the labeller has clicked (a person is
+    # slower than level 2 here; the test must not race it).
+    clicked = threading.Event()
+    shown = panel._on_search
+
+    def held_after_level_1(v) -> None:
+        shown(v)
+        if v.search_progress < 1.0 and (v.choices.lookahead_levels or (0,))[0] == 1:
+            clicked.wait(60)
+
+    panel._on_search = held_after_level_1
+    page.get_by_role("button", name="Run lookahead(2, 5)").click()
+    wait_until(lambda: "searching, level" in panel.search_status.content, 30, "the search")
+    assert keep.is_disabled()  # nothing to keep before the first level ends
+    wait_until(lambda: "choice after level 1" in panel.search_status.content, 120, "level 1")
+    so_far = view.choices.lookahead
+    assert so_far is not None and view.choices.lookahead_levels[0] == 1
+    assert "after level 1 of 2" in panel.choices.content
+    keep_shot(page, "search_level_1")
+    wait_until(lambda: not keep.is_disabled(), 10, "Keep enabled")
+    keep.click()
+    wait_until(lambda: "keeping its choice" in panel.search_status.content, 10, "the click")
+    clicked.set()
+    wait_until(lambda: view.search_progress == 1.0, 60, "the search to stop")
+    assert view.choices.lookahead == so_far and view.choices.lookahead_levels == (1, 2)
+    assert not view.search_cancelled
+    wait_until(lambda: "stopped after level 1 of 2" in panel.search_status.content, 10, "said")
+    assert f"`{tab.server_tab.inspector.res.library.keys[so_far]}` after level 1 of 2" in (
+        panel.choices.content
+    )
+    keep_shot(page, "search_kept_level_1")
 
 
 def test_inspect_simulates_a_candidate_in_the_model_and_in_a_world_unlike_it(tabs):

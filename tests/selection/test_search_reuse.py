@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knotlab.core.selection.decision import StepContext
+from knotlab.core.selection.decision import LevelDecision, StepContext
 from knotlab.core.selection.explain import search_tree_lines
 from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
@@ -92,3 +92,27 @@ def test_the_search_tree_lists_every_expansion_under_its_parent(lib, world, feat
         )
         or lines
     )
+
+
+def test_an_anytime_search_reports_each_level_and_decides_as_the_batch_one(
+    lib, world, featurizer, transferer
+):
+    ctx = _ctx(world, featurizer, transferer, lib[lib.index_of("s000-t0")].pre_nodes_k3)
+    model = _model(featurizer, ctx.phi_ad)
+    before = world.snapshot()
+    batch = LookaheadPolicy(model, depth=2, width=3).choose(ctx)
+    assert not batch.info["goal_found"]  # both levels run (the mini rope knots in no step)
+    reports: list[LevelDecision] = []
+    anytime = _ctx(world, featurizer, transferer, snapshot=before)
+    anytime.on_level = reports.append
+    final = LookaheadPolicy(model, depth=2, width=3).choose(anytime)
+    assert [(r.level, r.levels) for r in reports] == [(1, 2), (2, 2)]
+    assert final.action == batch.action and np.array_equal(final.scores_a, batch.scores_a)
+    assert reports[-1].decision.action == final.action
+    assert reports[-1].decision.info["backed_up"] == final.info["backed_up"]
+    # After level 1 the choice so far is lookahead(1, 3)'s: the same first level.
+    depth1 = LookaheadPolicy(model, depth=1, width=3).choose(
+        _ctx(world, featurizer, transferer, snapshot=before)
+    )
+    assert reports[0].decision.action == depth1.action
+    assert len(reports[0].decision.info["tree"]) == depth1.info["expansions"]
