@@ -36,10 +36,10 @@ class StepContext:
     # Outcomes shared with other policies on the same task (a bench run with
     # --share-simulations); None: each policy keeps its own (the lookahead's) or none.
     memo: OutcomeMemo | None = None
+    _phi_ad: np.ndarray | None = None
     # A search that works in levels (lookahead) reports its choice so far after each finished
     # level (an anytime search: the app shows it at once); the final decision is the same.
     on_level: Callable[[LevelDecision], None] | None = None
-    _phi_ad: np.ndarray | None = None
 
     @property
     def phi_ad(self) -> np.ndarray:
