@@ -2,6 +2,7 @@
 agreement scan vs exact (Spearman), and pycpd's deformable registration on the same pairs.
 
 Usage: .venv/bin/python bench/registration.py [--json] [--workers 2] [--repeats 7] [--quick]
+       [--target avx2]
 BLAS runs single-threaded (set below, before NumPy loads); the scan's parallelism is its own
 worker threads over chunks of demos.
 """
@@ -9,18 +10,23 @@ worker threads over chunks of demos.
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
+if "--target" in sys.argv and sys.argv[sys.argv.index("--target") + 1 :][:1] == ["avx2"]:
+    # Before numba and OpenBLAS load: they read these once.
+    from knotlab.core.machine import compile_for_avx2
+
+    compile_for_avx2(Path(__file__).resolve().parents[1] / "runs" / "numba-avx2")
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -269,6 +275,13 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--pairs", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="skip the exact-library Spearman")
+    parser.add_argument(
+        "--target",
+        choices=("host", "avx2"),
+        default="host",
+        help="avx2: compile the kernel (and pick OpenBLAS kernels) for an AVX2 CPU, to measure "
+        "AVX2 code on an AVX-512 machine (its own numba cache in runs/numba-avx2)",
+    )
     parser.add_argument(
         "--cold-start", action="store_true", help="also time numba compilation from an empty cache"
     )

@@ -1,0 +1,46 @@
+"""Where a figure was measured: the CPU kind, and the AVX2 code an AVX-512 machine can run."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from knotlab.core import machine
+
+
+def test_the_machine_line_names_the_vector_width_and_an_avx2_build(monkeypatch, tmp_path) -> None:
+    width = machine.vector_width()
+    assert width in ("avx512", "avx2", "no avx2", "unknown")
+    monkeypatch.delenv("NUMBA_CPU_FEATURES", raising=False)
+    assert machine.compiled_for() == width and f"({width})" in machine.machine_line()
+    for var in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES", "OPENBLAS_CORETYPE", "NUMBA_CACHE_DIR"):
+        monkeypatch.delenv(var, raising=False)  # restored after the test
+    machine.compile_for_avx2(tmp_path)
+    assert machine.compiled_for() == "avx2"
+    assert "code compiled for avx2" in machine.machine_line() or width == "avx2"
+    assert machine.machine_info()["compiled_for"] == "avx2"
+
+
+@pytest.mark.slow
+def test_numba_compiled_for_avx2_uses_no_avx512_registers(tmp_path) -> None:
+    """In a fresh process (numba reads its target once): a vector loop's assembly."""
+    code = f"""
+from knotlab.core.machine import compile_for_avx2
+compile_for_avx2({str(tmp_path)!r})
+import numpy as np
+from numba import njit
+
+@njit
+def axpy(a, x, y):
+    for i in range(x.size):
+        y[i] += a * x[i]
+
+x = np.ones(64, np.float32)
+axpy(np.float32(2), x, x.copy())
+asm = next(iter(axpy.inspect_asm().values()))
+print("zmm" in asm, "ymm" in asm)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"], out.stdout + out.stderr
