@@ -50,13 +50,36 @@ def _clouds_from_store(url: str) -> dict:
     return clouds
 
 
+def _score(clouds: dict, featurizer, model, args: argparse.Namespace, progress: bool) -> list:
+    """Every cloud's acquisition score; the level's shipped start scans are used where they fit
+    (the clouds a labelling store holds for its starts), the rest are scanned here."""
+    from tqdm import tqdm
+
+    from knotlab.app import defaults
+    from knotlab.app.options import resolve_level, task_of
+    from knotlab.core.errors import KnotlabError
+    from knotlab.core.selection.acquisition import score_starts
+    from knotlab.core.selection.scan_cache import ScanCacheIdentity, ScanSummaryCache
+
+    identity = ScanCacheIdentity.of(featurizer)
+    try:
+        path = defaults.scans_path(resolve_level(args), "train", task_of(args))
+        scans = ScanSummaryCache.load(path, identity)
+    except (KnotlabError, OSError, ValueError):  # another library, or no shipped scans
+        scans = ScanSummaryCache(identity)
+    with tqdm(total=len(clouds), desc="scoring states", disable=not progress) as bar:
+        return score_starts(
+            list(clouds.items()),
+            featurizer,
+            model,
+            scans,
+            report=lambda done, _total: bar.update(done - bar.n),
+        )
+
+
 def _run(args: argparse.Namespace) -> int:
     from knotlab.core.errors import InvalidInputError, KnotlabError
-    from knotlab.core.selection.acquisition import (
-        rank_for_labelling,
-        score_clouds,
-        task_start_clouds,
-    )
+    from knotlab.core.selection.acquisition import rank_for_labelling, task_start_clouds
     from knotlab.core.selection.features import LibraryFeaturizer
     from knotlab.core.selection.qmodel import QModel
     from knotlab.labeling_db.errors import LabelingDbError
@@ -83,7 +106,7 @@ def _run(args: argparse.Namespace) -> int:
                 )
             clouds = task_start_clouds(list(tasks), featurizer, progress=progress)
             where = str(path)
-        scores = score_clouds(clouds, featurizer, model, progress=progress)
+        scores = _score(clouds, featurizer, model, args, progress)
     except FileNotFoundError as exc:
         raise InvalidInputError(f"file not found: {exc.filename or exc}") from None
     except (KnotlabError, LabelingDbError) as exc:

@@ -144,24 +144,6 @@ def score_starts(
     return out
 
 
-def score_clouds(
-    clouds: Mapping[str, np.ndarray],
-    featurizer: LibraryFeaturizer,
-    model: QModel,
-    *,
-    progress: bool = True,
-) -> list[AcquisitionScore]:
-    """`score_scan` of every keyed cloud (one library scan each), with a progress bar."""
-    from tqdm import tqdm
-
-    out = []
-    keys = featurizer.library.keys
-    for key, cloud in tqdm(clouds.items(), desc="scoring states", disable=not progress):
-        phi_ad, scan = featurizer.features(cloud)
-        out.append(score_scan(key, scan, phi_ad, model, keys))
-    return out
-
-
 def task_start_clouds(
     tasks: Iterable[RopeTask], featurizer: LibraryFeaturizer, *, progress: bool = True
 ) -> dict[str, np.ndarray]:

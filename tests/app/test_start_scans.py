@@ -3,6 +3,7 @@ app's Suggest scans nothing; `knotlab tasks scans` writes them and will not over
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -69,3 +70,25 @@ def test_tasks_scans_refuses_to_overwrite_and_writes_elsewhere(tmp_path, capsys)
     assert resources.load_start_scans(out).startswith("300 precomputed")
     assert cli.main(argv) == 2  # its own file too: only with --force
     assert cli.main([*argv, "--force"]) == 0
+
+
+def test_suggest_from_a_labelling_store_scans_nothing_the_shipped_scans_hold(
+    tmp_path, capsys, monkeypatch
+) -> None:
+    from knotlab.core.selection.features import LibraryFeaturizer
+
+    resources = load_resources(defaults.library_path(), defaults.task_set_path("main", "train"), 5)
+    url = f"sqlite:///{tmp_path}/s.db"
+    with open_store(url, create=True) as store:
+        resources.register_starts(store, "main")
+
+    def no_scan(*_args, **_kwargs):
+        raise AssertionError("a start was scanned")
+
+    monkeypatch.setattr(LibraryFeaturizer, "scan", no_scan)
+    monkeypatch.setattr(LibraryFeaturizer, "landmark_weights", no_scan)
+    capsys.readouterr()
+    argv = ["suggest", "--db", url, "--json", "--no-progress", "--limit", "300"]
+    assert cli.main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 300 and rows[0]["rank"] == 1
