@@ -230,6 +230,9 @@ def report(args: argparse.Namespace) -> int:
         "tracker_error": tracker,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    if not rows:  # e.g. a folder of robust runs alone: they pair with plain runs, not the matched
+        print(f"\nwrote {out / 'summary.json'} (no setting pairs with the matched world: no plot)")
+        return 0
     _plot(rows, out / "robustness.png")
     print(f"\nwrote {out / 'summary.json'} and {out / 'robustness.png'}")
     return 0
@@ -244,6 +247,7 @@ def _plot(rows: list[PairedRow], path: Path) -> None:
 
     settings = list(dict.fromkeys(r.setting for r in rows))
     policies = [p for p in ORDER if any(r.policy == p for r in rows)]
+    policies += sorted({r.policy for r in rows} - set(ORDER))  # e.g. a robust lookahead
     width = 0.8 / max(len(policies), 1)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(settings) + 2), 4.2), dpi=120)
     for j, policy in enumerate(policies):

@@ -107,3 +107,8 @@ def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root,
     summary = (out / "summary.json").read_text()
     assert '"model_error"' in summary and '"robust_vs_plain"' in summary
     assert (out / "robustness.png").stat().st_size > 1000
+    # A folder of robust runs alone (what its own run reports at its end): its policy is none
+    # of the usual five, and is plotted all the same.
+    alone = SimpleNamespace(out_dir=str(robust), matched=str(matched), robust_dir=None)
+    assert robustness.report(alone) == 0
+    assert (robust / "robustness.png").stat().st_size > 1000
