@@ -61,7 +61,6 @@ _RANK_INDICATOR = (False, True, True, True, False)
 _RANK_CAP = 10  # ranks beyond this all look alike (the oracle tries 10 candidates)
 _MAX_MARGIN_POINTS = 40  # trajectory points per demo used for margins (subsampled evenly)
 SUMMARY_COSTS = COST_NAMES[:4]  # map_fwd, map_bwd, bend_f, bend_g: the features' costs
-_LANDMARK_MEMO_STATES = 4096  # states whose landmark weights a featurizer keeps (70 floats each)
 _MEMO_STATES = 32  # scans (and their features) a featurizer keeps, by the cloud's exact bytes
 
 
@@ -169,8 +168,6 @@ class LibraryFeaturizer:
         self.observation = ObservationModel.of_library_metadata(library.metadata)
         self._clouds = library.clouds()
         self._memo = _ScanMemo(_MEMO_STATES)
-        self._landmark_memo: OrderedDict[str, np.ndarray] = OrderedDict()
-        self._landmark_lock = threading.Lock()
         self._steps_a = library.step_indices()
         self._phase_steps = tuple(int(k) for k in np.unique(self._steps_a))
         self._phase_onehot_ak = (self._steps_a[:, None] == np.array(self._phase_steps)).astype(
@@ -181,9 +178,7 @@ class LibraryFeaturizer:
         self.landmarks = landmarks if landmarks is not None and len(landmarks) else None
         self.landmark_hash = self.landmarks.content_hash() if self.landmarks is not None else None
         self.rank_features = bool(rank_features)
-        self._landmark_key = (
-            f"landmarks-{self.landmarks.content_hash()}" if self.landmarks is not None else None
-        )
+        self._landmark_key = f"landmarks-{self.landmark_hash}" if self.landmark_hash else None
         landmark_names = (
             [f"landmark[{i}:{kind}]" for i, kind in enumerate(self.landmarks.kinds)]
             if self.landmarks is not None
@@ -218,7 +213,7 @@ class LibraryFeaturizer:
             tuple(indicator),
             self._phase_steps,
             self.phase_temperature,
-            self.landmarks.content_hash() if self.landmarks is not None else None,
+            self.landmark_hash,
             self.observation.value,
             self.rank_features,
             task=library.task,  # written only when not the overhand knot: old hashes hold
@@ -370,24 +365,7 @@ class LibraryFeaturizer:
         return np.column_stack([*columns, np.eye(self.n_actions)])
 
     def landmark_weights(self, cloud_n3: np.ndarray) -> np.ndarray:
-        """Softmax over landmarks of the relative registration cost (all zero if none register);
-        the last few thousand states' weights are kept (a pure function of the cloud)."""
-        assert self.landmarks is not None
-        key = cloud_digest(cloud_n3)
-        with self._landmark_lock:
-            hit = self._landmark_memo.get(key)
-            if hit is not None:
-                self._landmark_memo.move_to_end(key)
-                return hit
-        weights = self._landmark_weights_now(cloud_n3)
-        weights.flags.writeable = False
-        with self._landmark_lock:
-            self._landmark_memo[key] = weights
-            while len(self._landmark_memo) > _LANDMARK_MEMO_STATES:
-                self._landmark_memo.popitem(last=False)
-        return weights
-
-    def _landmark_weights_now(self, cloud_n3: np.ndarray) -> np.ndarray:
+        """Softmax over landmarks of the relative registration cost (all zero if none register)."""
         assert self.landmarks is not None
         scan = self.registrar.scan(
             cloud_n3,

@@ -9,7 +9,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.session import Phase
-from tests.browser.conftest import give_name, name_field, open_page, open_tab, wait_until
+from tests.browser.conftest import give_name, open_page, open_tab, wait_until
 
 
 def _scene_has(page, name: str) -> bool:
@@ -403,13 +403,11 @@ ACTIONS = ("Try (Enter)", "Accept (Y)", "Reject (N)", "Dead end (F)", "New rope 
 def test_actions_are_disabled_behind_the_name_prompt(browser, app):
     context = browser.new_context(viewport={"width": 1280, "height": 760})
     try:
-        page = context.new_page()
-        page.goto(app.url)
+        page, _ = open_page(app, context)
         page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
         buttons = [page.locator("button", has_text=a) for a in ACTIONS]
         assert all(b.is_disabled() for b in buttons), "actions behind the name prompt"
-        name_field(page).fill("ivo")
-        page.get_by_role("button", name="Start labelling").click()
+        give_name(page, "ivo")
         # The first state: a new rope and undo can be asked for, Try once a candidate is chosen.
         page.locator("button", has_text="New rope (R)").and_(page.locator(":enabled")).wait_for(
             timeout=30_000

@@ -269,8 +269,7 @@ def test_a_new_rope_after_a_dead_end_says_nothing_about_the_old_rope(tabs):
 def test_the_name_prompt_is_not_shown_over_connecting(browser, app):
     context = browser.new_context(viewport={"width": 1280, "height": 760})
     try:
-        page = context.new_page()
-        page.goto(app.url)
+        page, _ = open_page(app, context)
         page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
         wait_until(lambda: "waiting for your name" in page.locator("body").inner_text(), 20, "st")
         assert "Connecting..." not in page.locator("body").inner_text()
@@ -445,6 +444,7 @@ def test_the_search_shows_each_levels_choice_and_the_labeller_may_keep_it(tabs):
     assert f"`{tab.server_tab.inspector.res.library.keys[so_far]}` after level 1 of 2" in (
         panel.choices.content
     )
+    page.get_by_text("stopped after level 1 of 2").wait_for(timeout=10_000)  # the page too
     keep_shot(page, "search_kept_level_1")
 
 
