@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.agreement import OverlapPolicy
-from knotlab.core.selection.labels import OUTCOMES, DeadEndState, LabelledStep
+from knotlab.core.selection.labels import OUTCOMES, REACHED_BY, DeadEndState, LabelledStep
 from knotlab.core.tasks import DEFAULT_TASK
 from knotlab.labeling_db.decisions import start_key
 from knotlab.labeling_db.errors import (
@@ -220,6 +220,7 @@ class LabellingStore(StoreBase):
         metadata: Mapping[str, Any] | None = None,
         overlap: OverlapPolicy | None = None,
         prefer: Sequence[int] = (),
+        exclude: Sequence[int] = (),
     ) -> EpisodeInfo | None:
         """Start an episode on `state_id`, or claim the next unlabelled start state (None: none).
 
@@ -246,6 +247,8 @@ class LabellingStore(StoreBase):
                 if s.get_bind().dialect.name == "postgresql":
                     s.execute(select(func.pg_advisory_xact_lock(_PG_CLAIM_LOCK)))
                 free = RopeState.id.in_(_unlabelled_start_states().with_only_columns(RopeState.id))
+                if exclude:
+                    free = free & RopeState.id.not_in([int(i) for i in exclude])
                 sid = None
                 if prefer:
                     wanted = [int(i) for i in prefer]
@@ -259,6 +262,8 @@ class LabellingStore(StoreBase):
                     ).first()
                 if overlap is not None and overlap.overlap > 0:
                     second = _second_labeller_start(s, lid, overlap)
+                    if second is not None and second in {int(i) for i in exclude}:
+                        second = None
                     if second is not None and (sid is None or second < sid):
                         sid = second
                 if sid is None:
@@ -330,7 +335,8 @@ class LabellingStore(StoreBase):
                     f"is {n}, got {step.step_index}"
                 )
             sid = state_id
-            if sid is None and n == 0 and ep.start_state_id is not None:
+            reached = REACHED_BY in (ep.meta or {})  # its first state is not its start's
+            if sid is None and n == 0 and ep.start_state_id is not None and not reached:
                 sid = ep.start_state_id
             if sid is None:
                 prov = provenance or StateProvenance(ep.task_id, step.step_index, None)
@@ -373,6 +379,42 @@ class LabellingStore(StoreBase):
             s.add(DeadEnd(episode_id=ep.id, state_id=row.id, ordinal=int(n or 0)))
             s.flush()
             return row.id
+
+        return self._run(work, write=True)
+
+    def mark_reached(
+        self, episode_id: int, nodes_k3: np.ndarray, reached_by: Mapping[str, Any]
+    ) -> EpisodeInfo:
+        """Record that an unlabelled episode begins where a policy's rollout left its start.
+
+        ``reached_by`` says how (policy, model, step, demos chosen before, ...; it must hold
+        ``step`` >= 1); ``nodes_k3`` is the rope the first state was placed from, kept exactly
+        (float64), so a resume or an undo places the state that was shown. The episode's first
+        label then gets its own state row, not the start's.
+        """
+        reached = dict(reached_by)
+        step = reached.get("step")
+        if not isinstance(step, int) or isinstance(step, bool) or step < 1:
+            raise InvalidRecordError(f"reached_by must hold a step >= 1, got {step!r}")
+        _check_json("reached_by", reached)
+        nodes = _resume_nodes(nodes_k3)
+
+        def work(s: Session) -> EpisodeInfo:
+            ep = self._locked_episode(s, episode_id)
+            n = s.scalar(select(func.count()).select_from(Label).where(Label.episode_id == ep.id))
+            if ep.status != "in_progress" or n:
+                raise ConflictError(
+                    f"{self.url}: episode {episode_id} is {ep.status} with {n} labels; "
+                    "only a fresh in-progress episode can begin at a reached state"
+                )
+            ep.meta = {
+                **(ep.meta or {}),
+                REACHED_BY: reached,
+                "resume_nodes": nodes,
+                "state_sources": {"0": nodes},
+            }
+            s.flush()
+            return _episode_info(s, ep)
 
         return self._run(work, write=True)
 
@@ -468,7 +510,8 @@ class LabellingStore(StoreBase):
             if ep is None:
                 return None
             info = _episode_info(s, ep)
-            nodes = (ep.meta or {}).get("resume_nodes") if info.n_labels else None
+            moved = info.n_labels or REACHED_BY in (ep.meta or {})
+            nodes = (ep.meta or {}).get("resume_nodes") if moved else None
             return info, None if nodes is None else np.asarray(nodes, dtype=float)
 
         return self._run(work, write=False)

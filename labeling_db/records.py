@@ -58,6 +58,10 @@ class EpisodeInfo:
     ended_in_knot: bool
     started_at: datetime
     finished_at: datetime | None
+    # An episode that begins where a policy's rollout left the start (label where the model
+    # goes): the rollout step its first label is at, and the demos the policy chose before.
+    first_step: int = 0
+    policy_chosen: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

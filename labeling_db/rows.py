@@ -11,6 +11,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from knotlab.core.outcomes import StepOutcome
+from knotlab.core.selection.labels import REACHED_BY
 from knotlab.core.tasks import DEFAULT_TASK
 from knotlab.labeling_db.arrays import decode_array, encode_array
 from knotlab.labeling_db.errors import (
@@ -136,6 +137,7 @@ def _state_record(row: RopeState) -> StateRecord:
 
 def _episode_info(session: Session, ep: Episode) -> EpisodeInfo:
     n = session.scalar(select(func.count()).select_from(Label).where(Label.episode_id == ep.id))
+    reached = (ep.meta or {}).get(REACHED_BY) or {}
     return EpisodeInfo(
         episode_id=ep.id,
         execution_id=ep.execution_key,
@@ -147,6 +149,8 @@ def _episode_info(session: Session, ep: Episode) -> EpisodeInfo:
         ended_in_knot=ep.ended_in_knot,
         started_at=ep.started_at,
         finished_at=ep.finished_at,
+        first_step=int(reached.get("step", 0)),
+        policy_chosen=tuple(str(k) for k in reached.get("chosen_before", ())),
     )
 
 

@@ -61,12 +61,16 @@ class Actions:
     agreement: Callable[[], None]
     open_disagreement: Callable[[str], None]
     follow: Callable[[bool], None]
+    model_mode: Callable[[bool], None]  # label where the model goes: on / off
+    stop_model: Callable[[], None]
 
 
 def judged_suffix(rank: int, view: SessionView) -> str:
     """How a judged candidate reads in the list: a dead end is not a reject."""
     if rank in view.dead_ends:
         return " · dead end"
+    if rank == view.model_failed:
+        return " · the model's choice: failed"
     return " · rejected" if rank in view.rejected else ""
 
 
@@ -150,6 +154,12 @@ class LabelPanels:
                 self.follow_suggested = gui.add_checkbox(
                     "Next rope: the suggested one", False, hint="Model tab: Suggest"
                 )
+                self.model_mode = gui.add_checkbox(
+                    "Label where the model goes",
+                    False,
+                    hint="the model's own choices move each new rope until one fails; "
+                    "you label that state",
+                )
             # Disabled until the first state is shown: behind the name prompt they do nothing.
             with gui.add_folder("Actions"):
                 self.try_button = gui.add_button(
@@ -169,6 +179,13 @@ class LabelPanels:
                 )
                 self.undo_button = gui.add_button(
                     "Undo last label (U)", icon=icon.ARROW_BACK_UP, disabled=True
+                )
+                self.stop_model_button = gui.add_button(
+                    "Stop the model here (S)",
+                    color="orange",
+                    icon=icon.PLAYER_STOP,
+                    visible=False,
+                    hint="label the state the model has reached",
                 )
             with gui.add_folder("Progress"):
                 self.progress = gui.add_markdown("")
@@ -216,6 +233,8 @@ class LabelPanels:
         self.dead_button.on_click(lambda _e: a.dead_end())
         self.resample_button.on_click(lambda _e: a.resample())
         self.undo_button.on_click(lambda _e: a.undo())
+        self.stop_model_button.on_click(lambda _e: a.stop_model())
+        self.model_mode.on_update(lambda _e: a.model_mode(bool(self.model_mode.value)))
         self.retrain_button.on_click(lambda _e: a.retrain())
         self.use_anyway_button.on_click(lambda _e: a.use_anyway())
         self.suggest_button.on_click(lambda _e: a.suggest())
@@ -242,6 +261,7 @@ class LabelPanels:
             ("Dead end", "F", a.dead_end),
             ("New rope", "R", a.resample),
             ("Undo last label", "U", a.undo),
+            ("Stop the model here", "S", a.stop_model),
         ]
         for r in range(1, MAX_LISTED + 1):
             keys.append((f"Select rank {r}", str(r), _bind(a.select, r)))
@@ -306,8 +326,9 @@ class LabelPanels:
         """Refresh status, candidate list and which actions are enabled."""
         phase = view.phase
         where = f"task `{view.task_id}`" if view.task_id else "no rope"
+        step = f"step **{view.rollout_step + 1}** of {view.step_limit}"
         lines = [
-            f"**{view.labeller}** · {where} · step **{view.step_index + 1}** of {view.max_steps}",
+            f"**{view.labeller}** · {where} · {step}",
             f"ranked by: {view.model}",
             f"*{phase.value}*" + (f": {view.message}" if view.message else ""),
         ]
@@ -338,9 +359,13 @@ class LabelPanels:
         # A closed session (its episode taken over in another tab) acts on nothing here.
         closed = phase is Phase.CLOSED
         self._set(
-            self.resample_button, "disabled", closed or phase in (Phase.TRYING, Phase.NO_STARTS)
+            self.resample_button,
+            "disabled",
+            closed or phase in (Phase.TRYING, Phase.MODEL, Phase.NO_STARTS),
         )
-        self._set(self.undo_button, "disabled", closed or phase is Phase.TRYING)
+        busy = phase in (Phase.TRYING, Phase.MODEL)
+        self._set(self.undo_button, "disabled", closed or busy)
+        self._set(self.stop_model_button, "visible", phase is Phase.MODEL)
         for command in self.commands:  # the hotkeys too
             self._set(command, "disabled", closed)
 
@@ -357,7 +382,7 @@ class LabelPanels:
         self.progress.content = (
             f"labels today: **{today}** · in total: **{total}**  \n"
             f"training starts left: **{starts_left}**  \n"
-            f"this episode: step {view.step_index + 1} of {view.max_steps}"
+            f"this episode: step {view.rollout_step + 1} of {view.step_limit}"
             + ("".join(f"  \n· {h}" for h in view.history[-5:]))
         )
 

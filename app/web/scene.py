@@ -50,6 +50,7 @@ PANEL_PX = 24 * 16 + 16
 WARPED_POINT_SIZE = 1.4 * ROPE_RADIUS  # m: the warped demo cloud's points, wider than the rope
 WARPED_LIFT = ROPE_RADIUS  # m: and drawn on the rope's top, not inside it
 PLAYBACK_SPEED = 2.0  # animation runs at twice simulated time: a 6 s execution plays in 3 s
+MODEL_SPEED = 6.0  # the model's own steps are fast-forwarded: a 6 s execution plays in 1 s
 
 
 SceneView = Literal["label", "inspect", "playback"]  # what a tab's 3D view shows
@@ -71,7 +72,13 @@ def badge_text(c: Candidate, view: SessionView) -> str:
     rest (five full captions overlap one another), with how it was judged."""
     rank = c.ranked.rank
     verdict = (
-        " (dead end)" if rank in view.dead_ends else " (rejected)" if rank in view.rejected else ""
+        " (dead end)"
+        if rank in view.dead_ends
+        else " (the model's, failed)"
+        if rank == view.model_failed
+        else " (rejected)"
+        if rank in view.rejected
+        else ""
     )
     return (candidate_label(c) if rank == view.selected else f"#{rank}") + verdict
 
@@ -402,9 +409,13 @@ class SceneDrawer:
 
     # ------------------------------------------------------------------ animation
     def animate(
-        self, recorder: FrameRecorder, rank: int, active_g: tuple[bool, bool] = (True, True)
+        self,
+        recorder: FrameRecorder,
+        rank: int,
+        active_g: tuple[bool, bool] = (True, True),
+        speed: float = PLAYBACK_SPEED,
     ) -> threading.Thread:
-        """Play the recorder's frames as they arrive (PLAYBACK_SPEED x simulated time).
+        """Play the recorder's frames as they arrive (``speed`` x simulated time).
 
         Only the grippers the trajectory uses (``active_g``) are drawn; the cloud of the state
         before the try is hidden (it no longer describes the rope).
@@ -426,8 +437,8 @@ class SceneDrawer:
                     continue
                 t_sim, nodes, grippers, closed = recorder.frame(i)
                 if t_wall0 is None:
-                    t_wall0 = time.perf_counter() - t_sim / PLAYBACK_SPEED
-                due = t_wall0 + t_sim / PLAYBACK_SPEED
+                    t_wall0 = time.perf_counter() - t_sim / speed
+                due = t_wall0 + t_sim / speed
                 wait = due - time.perf_counter()
                 if wait > 0:
                     stop.wait(wait)

@@ -8,6 +8,14 @@ the step), rejects it (N: state restored, candidate greyed out), marks the resul
 stored, state restored) or abandons the rope (R). U undoes the last accepted label. A knot or the
 step limit ends the episode and the next start is claimed.
 
+Label where the model goes (``model_mode``): on each new start the ranking model's own first
+choice is executed step after step (phase MODEL: the rope advances as the greedy policy would
+move it) until that choice fails (a failed execution, no stage gained, a step back, or the step
+limit without a knot) or the labeller stops it; the episode then begins at that state (the
+store records which policy and model reached it, from which start, and the demos chosen on the
+way) and the expert labels it as usual, the model's failed choice greyed out. A start the model
+ties a knot from has nothing to label and is passed over.
+
 Thread safety: viser runs callbacks on a thread pool, so every public method takes the session's
 lock; ``try_selected`` holds it only to start and to finish, and refuses a second try meanwhile.
 Shape suffixes: n = cloud points, k = rope nodes, g = grippers, t = waypoints.
@@ -25,6 +33,7 @@ import numpy as np
 
 from knotlab.app.web.resources import AppResources, RankingModel
 from knotlab.core.execution.apply import ActionOutcome
+from knotlab.core.experiments.labeller import start_rope_hash
 from knotlab.core.failures import FailureKind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.registration import ScanResult
@@ -45,9 +54,19 @@ class Phase(StrEnum):
 
     CHOOSING = "choosing"  # candidates shown, pick one and try it
     TRYING = "trying"  # the simulator is executing the selected candidate
+    MODEL = "model"  # the model's own choices move the rope until one fails (or it is stopped)
     JUDGING = "judging"  # the result is shown: accept, reject or dead end
     NO_STARTS = "no_starts"  # every training start is labelled or claimed
     CLOSED = "closed"
+
+
+class DriveOutcome(StrEnum):
+    """What one step of the model driving the rope led to."""
+
+    CONTINUES = "continues"  # the choice advanced the rope: the model chooses again
+    HANDED_OVER = "handed_over"  # its choice failed, or it was stopped: the expert labels here
+    TIED = "tied"  # the model tied the knot from this start: nothing to label; next start
+    STOPPED = "stopped"  # the session left the MODEL phase meanwhile (closed, taken over)
 
 
 class SessionError(Exception):
@@ -150,6 +169,19 @@ class SessionView:
     rank_s: float = 0.0
     history: list[str] = field(default_factory=list)
     dead_ends: frozenset[int] = frozenset()  # ranks whose try was stored as a dead end
+    first_step: int = 0  # the rollout step this episode's first state is at (model mode)
+    model_mode: bool = False
+    model_failed: int | None = None  # the rank of the model's choice that failed in this state
+
+    @property
+    def rollout_step(self) -> int:
+        """The state's step in the task's rollout (0: its start), across a model's drive."""
+        return self.first_step + self.step_index
+
+    @property
+    def step_limit(self) -> int:
+        """The task's step limit for the whole rollout."""
+        return self.first_step + self.max_steps
 
 
 class LabelSession:
@@ -170,7 +202,16 @@ class LabelSession:
         self.store = store
         self.res = resources
         self.labeller = labeller.strip()
-        self.max_steps = resources.task.step_limit if max_steps is None else max_steps
+        self.step_limit = resources.task.step_limit if max_steps is None else max_steps
+        self.max_steps = self.step_limit  # of this episode: the limit less its first step
+        self.first_step = 0
+        self.model_mode = False
+        self._stop_model = threading.Event()  # the labeller asked the model to stop driving
+        self._model_chosen: list[str] = []  # demos the model executed from this start
+        self._passed_over: set[int] = set()  # starts the model tied, or R left, in model mode
+        self._in_step = False  # a drive step is simulating (outside the lock)
+        self._placed_from: np.ndarray | None = None  # the rope the model's last state came from
+        self.model_failed: int | None = None  # rank of the model's failed choice in this state
         self.world = world if world is not None else RopeWorld()
         self._own_world = world is None
         self._simulate = simulate  # None: simulate tries in this process
@@ -217,6 +258,9 @@ class LabelSession:
                 rank_s=self.rank_s,
                 history=list(self.history),
                 dead_ends=frozenset(self.dead_ends),
+                first_step=self.first_step,
+                model_mode=self.model_mode,
+                model_failed=self.model_failed,
             )
 
     def candidate(self, rank: int) -> Candidate:
@@ -245,6 +289,7 @@ class LabelSession:
             source="human",
             prefer=self.prefer() if self.prefer is not None else (),
             overlap=self.res.overlap,
+            exclude=sorted(self._passed_over) if self.model_mode else (),
         )
         if info is None:
             self.phase = Phase.NO_STARTS
@@ -265,9 +310,17 @@ class LabelSession:
                 raise SessionError(f"episode {info.episode_id}: its start state has no rope")
             nodes = state.rope_nodes_k3
         self.world.reset(np.asarray(nodes, dtype=float))
+        self.first_step = info.first_step
+        self.max_steps = self.step_limit - info.first_step
         self.step_index = info.n_labels
-        self.history = []
+        self._model_chosen = list(info.policy_chosen)
+        self.history = [
+            f"step {i + 1}: {key} (the model's choice)" for i, key in enumerate(info.policy_chosen)
+        ]
+        self._stop_model.clear()
         self._show_state()
+        if self.model_mode and info.n_labels == 0 and info.first_step == 0 and self.candidates:
+            self.phase = Phase.MODEL  # a fresh start: the model drives first
 
     def _show_state(self) -> None:
         """Observe, scan and rank the world's current state (the greedy policy's ranking)."""
@@ -288,6 +341,7 @@ class LabelSession:
         self.selected = self.candidates[0].ranked.rank if self.candidates else None
         self.rejected = set()
         self.dead_ends = set()
+        self.model_failed = None
         self.last_try = None
         self.phase = Phase.CHOOSING
         self.rank_s = time.perf_counter() - t0
@@ -338,6 +392,31 @@ class LabelSession:
             cand = self.candidate(self.selected)
             self.phase = Phase.TRYING
             snapshot, cloud, nodes = self.snapshot, self.cloud_n3, self.nodes_k3
+        result = self._execute(cand, snapshot, cloud, nodes, recorder, back_to=Phase.CHOOSING)
+        with self._lock:
+            if self.phase is not Phase.TRYING:  # the tab closed meanwhile: nothing to judge
+                if self._own_world:
+                    self.world.close()
+                return result
+            if result.acceptable and result.cloud_after_n3 is not None:
+                self._ahead = _ScanAhead(result.cloud_after_n3, self.res.current)  # most are
+            self.last_try = result
+            self.phase = Phase.JUDGING
+            self.message = _try_message(result)
+        return result
+
+    def _execute(
+        self,
+        cand: Candidate,
+        snapshot: SimSnapshot | None,
+        cloud: np.ndarray | None,
+        nodes: np.ndarray | None,
+        recorder: FrameRecorder | None,
+        *,
+        back_to: Phase,
+    ) -> TryResult:
+        """Simulate one candidate from the state shown (outside the lock); the world keeps the
+        result. On an error the state is restored and the phase set to ``back_to``."""
         assert snapshot is not None and cloud is not None
         task = self.res.task
         stage_before = task.stage(nodes).stage if nodes is not None else 0
@@ -362,9 +441,10 @@ class LabelSession:
         except Exception:
             with self._lock:
                 self.world.restore(snapshot)
-                self.phase = Phase.CHOOSING
+                if self.phase is not Phase.CLOSED:
+                    self.phase = back_to
             raise
-        result = TryResult(
+        return TryResult(
             cand.ranked.rank,
             cand.ranked.demo_key,
             outcome,
@@ -375,17 +455,140 @@ class LabelSession:
             stage_before,
             task.stage_names,
         )
+
+    # ------------------------------------------------------------------ the model drives
+    def set_model_mode(self, on: bool) -> SessionView:
+        """Turn "label where the model goes" on or off. On at a fresh start, the model drives it
+        now; off while it drives, it stops after its current step (the expert labels there)."""
         with self._lock:
-            if self.phase is not Phase.TRYING:  # the tab closed meanwhile: nothing to judge
-                if self._own_world:
+            self.model_mode = bool(on)
+            fresh = self.step_index == 0 and self.first_step == 0 and not self.rejected
+            if on and self.phase is Phase.CHOOSING and fresh and self.candidates:
+                self._stop_model.clear()
+                self.phase = Phase.MODEL
+                self.message = "the model drives this rope until its choice fails (S stops it)"
+            elif not on and self.phase is Phase.MODEL:
+                self._stop_model.set()
+            return self.view()
+
+    def stop_model(self) -> SessionView:
+        """S: stop the model after its current step; the expert labels the state it reached."""
+        with self._lock:
+            if self.phase is not Phase.MODEL:
+                raise SessionError("the model is not driving the rope")
+            self._stop_model.set()
+            self.message = "stopping the model after this step"
+            return self.view()
+
+    def drive_step(self, recorder: FrameRecorder | None = None) -> DriveOutcome:
+        """Execute the model's first choice in the state shown, and advance or hand over."""
+        with self._lock:
+            if self.phase is not Phase.MODEL:
+                return DriveOutcome.STOPPED
+            if self._stop_model.is_set():
+                self._hand_over(None, "you stopped the model")
+                return DriveOutcome.HANDED_OVER
+            cand = self.candidates[0]
+            snapshot, cloud, nodes = self.snapshot, self.cloud_n3, self.nodes_k3
+            self._in_step = True
+        try:
+            result = self._execute(cand, snapshot, cloud, nodes, recorder, back_to=Phase.MODEL)
+        finally:
+            with self._lock:
+                self._in_step = False
+        with self._lock:
+            if self.phase is not Phase.MODEL:
+                if self.phase is Phase.CLOSED and self._own_world:
                     self.world.close()
-                return result
-            if result.acceptable and after is not None:  # most tries are accepted: scan ahead
-                self._ahead = _ScanAhead(after, self.res.current)
-            self.last_try = result
-            self.phase = Phase.JUDGING
-            self.message = _try_message(result)
-        return result
+                return DriveOutcome.STOPPED
+            rollout_step = self.first_step + self.step_index
+            if result.word == StepOutcome.KNOT:
+                return self._model_tied_knot(result)
+            advanced = result.acceptable and int(result.outcome.stage) > result.stage_before
+            if not advanced or rollout_step + 1 >= self.step_limit:
+                self.world.restore(self.snapshot)
+                why = (
+                    "its last step did not tie the knot"
+                    if advanced
+                    else f"#{result.rank} {result.demo_key}: {result.summary}"
+                )
+                self._hand_over(result.rank, f"the model's choice failed here ({why})")
+                return DriveOutcome.HANDED_OVER
+            self._model_chosen.append(result.demo_key)
+            self.history.append(
+                f"step {rollout_step + 1}: {result.demo_key} (the model's choice; "
+                f"{result.stage_reached})"
+            )
+            # Placed from the nodes exactly as an accepted step is, so the state handed over
+            # is one the store can place again bit for bit.
+            self._placed_from = stored_nodes(result.outcome.nodes_after_k3)
+            self.world.reset(self._placed_from)
+            self.first_step += 1
+            self.max_steps = self.step_limit - self.first_step
+            self._show_state()
+            if not self.candidates:
+                self._hand_over(None, "no demo registers onto the rope the model reached")
+                return DriveOutcome.HANDED_OVER
+            if self._stop_model.is_set():
+                self._hand_over(None, "you stopped the model")
+                return DriveOutcome.HANDED_OVER
+            self.phase = Phase.MODEL
+            self.message = f"the model drives: step {self.first_step + 1} (S stops it)"
+            return DriveOutcome.CONTINUES
+
+    def _hand_over(self, failed_rank: int | None, why: str) -> None:
+        """The expert labels the state shown: record how the model reached it (if it moved)."""
+        assert self.episode is not None and self.nodes_k3 is not None
+        self._stop_model.clear()
+        self.phase = Phase.CHOOSING
+        if self.first_step > 0:
+            reached = {
+                "policy": "greedy" if self.ranking.model is not None else "nn",
+                "model": self.ranking.version,
+                "step": self.first_step,
+                "chosen_before": list(self._model_chosen),
+                "start_task_id": self.task_id,
+                "start_rope_hash": start_rope_hash(self._start_nodes()),  # as the CLI hashes it
+                "labeller": self.labeller,
+                "why": why,
+            }
+            assert self._placed_from is not None
+            self.episode = self.store.mark_reached(
+                self.episode.episode_id, self._placed_from, reached
+            )
+        if failed_rank is not None:
+            self.rejected.add(failed_rank)  # it would fail the same way again
+            self.model_failed = failed_rank
+            left = [c.ranked.rank for c in self.candidates if c.ranked.rank not in self.rejected]
+            self.selected = left[0] if left else None
+        where = "this start" if self.first_step == 0 else f"step {self.first_step + 1}"
+        self.message = f"{why}: label {where}"
+
+    def _model_tied_knot(self, result: TryResult) -> DriveOutcome:
+        """Nothing to label on a start the model solves: pass it over, claim the next."""
+        assert self.episode is not None
+        steps = self.first_step + 1
+        task = self.task_id
+        self._passed_over.add(int(self.episode.start_state_id or -1))
+        old = self.episode
+        self._claim_next()
+        self.store.finish_episode(old.episode_id, status="abandoned")
+        self.message = (
+            f"the model tied the knot from {task} in {steps} steps: nothing to label there"
+            + ("; next start" if self.episode is not None else "")
+        )
+        return DriveOutcome.TIED
+
+    def _start_nodes(self) -> np.ndarray:
+        """The rope nodes of the current episode's start: the task set's own (float64) when
+        the start is one of its tasks, else the stored ones."""
+        for task in self.res.tasks:
+            if task.task_id == self.task_id:
+                return task.start_nodes_k3
+        assert self.episode is not None and self.episode.start_state_id is not None
+        nodes = self.store.get_state(self.episode.start_state_id).rope_nodes_k3
+        assert nodes is not None
+        return nodes
 
     def accept(self) -> SessionView:
         """Y: store the label (state, choice, ranking shown, model, rope after) atomically."""
@@ -410,12 +613,13 @@ class LabelSession:
             self.store.add_label(
                 self.episode.episode_id,
                 step,
-                provenance=StateProvenance(self.task_id, self.step_index, None),
+                provenance=StateProvenance(self.task_id, self.first_step + self.step_index, None),
                 next_nodes_k3=result.outcome.nodes_after_k3,
                 finish=ends,  # the last label and the episode's end in one transaction
             )
             reached = result.stage_reached  # not "progressed": that is said of every execution
-            self.history.append(f"step {self.step_index + 1}: {result.demo_key} ({reached})")
+            shown = self.first_step + self.step_index + 1
+            self.history.append(f"step {shown}: {result.demo_key} ({reached})")
             self.step_index += 1
             if ends:
                 done = "knot tied" if result.word == StepOutcome.KNOT else "step limit reached"
@@ -427,7 +631,7 @@ class LabelSession:
                 # ranking stored with its label is the one the expert saw.
                 self.world.reset(stored_nodes(result.outcome.nodes_after_k3))
                 self._show_state()
-                self.message = f"accepted {result.demo_key}; step {self.step_index + 1}"
+                self.message = f"accepted {result.demo_key}; step {shown + 1}"
             return self.view()
 
     def reject(self) -> SessionView:
@@ -447,7 +651,9 @@ class LabelSession:
                 self.store.add_dead_end(
                     self.episode.episode_id,
                     DeadEndState(result.cloud_after_n3, result.outcome.nodes_after_k3),
-                    provenance=StateProvenance(self.task_id, self.step_index, None),
+                    provenance=StateProvenance(
+                        self.task_id, self.first_step + self.step_index, None
+                    ),
                 )
             self.dead_ends.add(result.rank)
             self._restore_after(result.rank)
@@ -475,8 +681,13 @@ class LabelSession:
         with self._lock:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
+            if self.phase is Phase.MODEL:
+                raise SessionError("the model is driving this rope: stop it first (S)")
             old = self.episode
             self.message = ""  # what was said about the old rope is not about the new one
+            if self.model_mode and old is not None and old.start_state_id is not None:
+                # The model would drive it to the same state again: go on to other starts.
+                self._passed_over.add(old.start_state_id)
             # Claim the next start while this one is still held, so R never hands back the
             # rope just abandoned (unless it is the only one left).
             self._claim_next()
@@ -491,6 +702,8 @@ class LabelSession:
         with self._lock:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
+            if self.phase is Phase.MODEL:
+                raise SessionError("the model is driving this rope: stop it first (S)")
             if self.episode is None or self.store.episode(self.episode.episode_id).n_labels == 0:
                 # A finished episode stays finished: undoing into it would silently abandon
                 # the rope on screen. Said in the status area, where the labeller looks.
@@ -529,7 +742,8 @@ class LabelSession:
             self.phase = Phase.CLOSED
             if was is not Phase.NO_STARTS:
                 self._release_if_unlabelled()
-            if self._own_world and was is not Phase.TRYING:
+            busy = was is Phase.TRYING or (was is Phase.MODEL and self._in_step)
+            if self._own_world and not busy:  # else the running step closes it when done
                 self.world.close()
 
 

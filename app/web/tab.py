@@ -7,6 +7,7 @@ action the protocol does not allow right now becomes a notification, never a cra
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
@@ -21,8 +22,15 @@ from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
-from knotlab.app.web.scene import SceneDrawer, pixel_ratio_of
-from knotlab.app.web.session import FRAME_DT, LabelSession, Phase, SessionError, SessionView
+from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, pixel_ratio_of
+from knotlab.app.web.session import (
+    FRAME_DT,
+    DriveOutcome,
+    LabelSession,
+    Phase,
+    SessionError,
+    SessionView,
+)
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
 
@@ -44,6 +52,9 @@ class LabelTab:
         self.session: LabelSession | None = None
         self.closed = False
         self._follow = False
+        self._model_mode = False  # label where the model goes (the Label tab's checkbox)
+        self._driver: threading.Thread | None = None  # runs the model's steps while it drives
+        self._driver_lock = threading.Lock()
         self._disagreements: dict = {}
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
@@ -67,6 +78,8 @@ class LabelTab:
                 agreement=self.agreement,
                 open_disagreement=self.open_disagreement,
                 follow=self.follow,
+                model_mode=self.model_mode,
+                stop_model=self.stop_model,
             ),
         )
         with self.panels.tabs.add_tab("Inspect", icon=viser.Icon.ZOOM_QUESTION):
@@ -162,8 +175,11 @@ class LabelTab:
         self.session = session
         if self._follow:
             session.prefer = lambda: self.app.suggested
+        if self._model_mode:
+            session.set_model_mode(True)
         self._draw(look=True)
         self.ready.set()
+        self._drive_if_needed()
         log.info("client %s: %s labels %s", self.client.client_id, name, view.task_id)
 
     def back_to_labelling(self) -> None:
@@ -264,6 +280,92 @@ class LabelTab:
         else:
             self._draw(look=look)
         self.timings["action_to_drawn_s"] = time.perf_counter() - t0
+        self._drive_if_needed()  # a new rope in model mode: the model drives it first
+
+    # ------------------------------------------------------------------ the model drives
+    def model_mode(self, on: bool) -> None:
+        """The checkbox: label where the model goes (on), or along the expert's own episode."""
+        self._model_mode = on
+        session = self.session
+        if session is None:
+            return
+        self.back_to_labelling()
+        session.set_model_mode(on)
+        self._draw()
+        self._drive_if_needed()
+
+    def stop_model(self) -> None:
+        """S: stop the model after its current step; label the state it has reached."""
+        session = self.session
+        if session is None:
+            return
+        try:
+            view = session.stop_model()
+        except SessionError as exc:
+            self._notify("not now", str(exc), "yellow")
+            return
+        self.panels.show(view)
+
+    def _drive_if_needed(self) -> None:
+        """Start the thread that runs the model's steps when the session is in the MODEL phase."""
+        session = self.session
+        if session is None or self.closed or session.view().phase is not Phase.MODEL:
+            return
+        with self._driver_lock:
+            if self._driver is not None and self._driver.is_alive():
+                return
+            self._driver = threading.Thread(
+                target=self._drive,
+                args=(session,),
+                name=f"model-drives-{self.client.client_id}",
+                daemon=True,
+            )
+            self._driver.start()
+
+    def _drive(self, session: LabelSession) -> None:
+        """Show each state and the model's choice, execute it fast-forwarded, until it hands
+        the rope over (or ties the knot: then the next start)."""
+        while self._still_driving(session):
+            view = session.view()
+            if view.phase is not Phase.MODEL or not view.candidates:
+                break
+            self.back_to_labelling()
+            chosen = view.candidates[0]
+            view.message = (
+                f"the model executes its choice #{chosen.ranked.rank} {chosen.ranked.demo_key} "
+                "(S stops it after this step)"
+            )
+            with self.client.atomic():
+                self.drawer.draw(_trying(dataclasses.replace(view)), look=False)
+                self.panels.show(view)
+            recorder = FrameRecorder(FRAME_DT)
+            active = (bool(chosen.closed_gt[0].any()), bool(chosen.closed_gt[1].any()))
+            anim = self.drawer.animate(recorder, chosen.ranked.rank, active, speed=MODEL_SPEED)
+            try:
+                outcome = session.drive_step(recorder)
+            except Exception as exc:
+                self.drawer.stop_animation()
+                self._notify("the model's step failed", f"{type(exc).__name__}: {exc}", "red")
+                log.exception("drive step failed")
+                with contextlib.suppress(SessionError):
+                    session.stop_model()  # the next step hands the rope over
+                continue
+            anim.join(timeout=30.0)  # the fast-forwarded execution plays to its end first
+            if outcome is DriveOutcome.STOPPED:
+                break
+            after = session.view()
+            if outcome is DriveOutcome.TIED:
+                self._notify("the model tied the knot", after.message, "green")
+                self._draw(look=True)
+            elif outcome is DriveOutcome.HANDED_OVER:
+                self._notify("your turn", after.message, "blue")
+        if self._still_driving(session):
+            self.drawer.stop_animation()
+            self._draw()
+
+    def _still_driving(self, session: LabelSession) -> bool:
+        """The tab is open and still labels with ``session`` (not closed, not taken over)."""
+        return not self.closed and self.session is session
 
     def _draw(self, look: bool = False) -> None:
         session = self.session

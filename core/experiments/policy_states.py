@@ -30,7 +30,7 @@ import numpy as np
 from knotlab.core.experiments.labeller import OracleParams, oracle_from, start_rope_hash
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
-from knotlab.core.selection.labels import LabelledExecution
+from knotlab.core.selection.labels import REACHED_BY, LabelledExecution
 
 if TYPE_CHECKING:
     from knotlab.core.agent import Agent
@@ -38,7 +38,6 @@ if TYPE_CHECKING:
     from knotlab.core.world.sim import RopeWorld
 
 DEFAULT_ORACLE = OracleParams()
-REACHED_BY = "reached_by"  # execution metadata: how its first state was reached
 
 
 def policy_execution_prefix(policy: str, round_index: int, task_id: str) -> str:

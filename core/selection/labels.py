@@ -19,6 +19,10 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.outcomes import STEP_OUTCOMES, StepOutcome
 
 OUTCOMES: tuple[str, ...] = STEP_OUTCOMES  # the stored strings, in StepOutcome order
+# Execution metadata: how the execution's first state was reached when a policy's rollout led
+# there (policy, model, start task and rope hash, step, demos chosen before); absent when the
+# execution begins at its task's start.
+REACHED_BY = "reached_by"
 LabelSource = Literal["oracle", "human"]
 
 

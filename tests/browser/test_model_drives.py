@@ -1,0 +1,94 @@
+"""Label where the model goes, in the browser: the checkbox lets the model's own choices move the
+rope (fast-forwarded) until one fails or S stops it; the labeller labels that state, and the
+store records which policy and model reached it."""
+
+from __future__ import annotations
+
+from knotlab.app.web.session import Phase
+from knotlab.core.selection.labels import REACHED_BY
+from tests.browser.conftest import wait_until
+
+DRIVE_TIMEOUT = 120.0  # s: a few starts of up to five fast-forwarded model steps
+
+
+def _tick_model_mode(tab) -> None:
+    tab.page.get_by_text("Label where the model goes").click()
+    wait_until(lambda: tab.session.view().model_mode, 10, "the mode on")
+
+
+def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
+    tab = tabs("uma")
+    _tick_model_mode(tab)
+    wait_until(lambda: tab.session.view().phase is Phase.MODEL, 20, "the model to drive")
+    wait_until(
+        lambda: tab.page.get_by_role("button", name="Stop the model here (S)").is_visible(),
+        10,
+        "the stop button",
+    )
+    tab.press("s")  # keyboard only from here
+    view = wait_until(
+        lambda: (v := tab.session.view()).phase is Phase.CHOOSING and v,
+        DRIVE_TIMEOUT,
+        "the model to hand the rope over",
+    )
+    assert "you stopped the model" in view.message  # the model was mid-step when S came
+    wait_until(
+        lambda: "label " in tab.page.inner_text("body") and "uma" in tab.page.inner_text("body"),
+        10,
+        "the hand-over said in the panel",
+    )
+    tab.screenshot("model_stopped")
+    for _ in range(len(view.candidates)):  # Enter tries; Y accepts, N rejects a failed try
+        tab.press("Enter")
+        judged = wait_until(
+            lambda: (v := tab.session.view()).phase is Phase.JUDGING and v, 60, "the try"
+        )
+        if judged.last_try.acceptable:
+            tab.press("y")
+            break
+        tab.press("n")
+        wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
+    wait_until(lambda: app.store.labels(labeller="uma"), 20, "the label stored")
+    (stored,) = app.store.stored_executions(labeller="uma", statuses=("in_progress", "completed"))
+    assert view.first_step >= 1  # S came while the first step ran: the model moved the rope
+    reached = stored.execution.metadata[REACHED_BY]
+    assert reached["step"] == view.first_step and reached["why"] == "you stopped the model"
+    assert reached["model"] == app.resources.current.version
+    assert stored.step_provenance[0].episode_step == view.first_step
+
+
+def test_the_model_drives_until_its_choice_fails_then_the_labeller_takes_over(tabs, app):
+    tab = tabs("vic")
+    _tick_model_mode(tab)  # mouse only
+    view = wait_until(
+        lambda: (v := tab.session.view()).phase is Phase.CHOOSING and v.first_step >= 1 and v,
+        DRIVE_TIMEOUT,
+        "the model to reach a state it fails in",
+    )
+    assert "the model's choice failed here" in view.message
+    body = tab.page.inner_text("body")
+    assert f"step {view.rollout_step + 1} of {view.step_limit}" in body
+    failed = tab.server_tab.panels.cand_buttons[0]
+    wait_until(lambda: failed.disabled, 10, "the model's failed choice greyed out")
+    tab.screenshot("model_handed_over")
+    episode, _ = app.store.open_episode("vic")
+    assert episode.first_step == view.first_step
+    assert len(episode.policy_chosen) == view.first_step
+    assert "the model's choice: failed" in tab.page.inner_text("body")
+    # The expert labels it with the mouse: the selected candidate is tried, then judged.
+    for _ in range(len(view.candidates)):
+        tab.button("Try (Enter)").click()
+        judged = wait_until(
+            lambda: (v := tab.session.view()).phase is Phase.JUDGING and v, 60, "the try"
+        )
+        if judged.last_try.acceptable:
+            tab.button("Accept (Y)").click()
+            break
+        tab.button("Reject (N)").click()
+        wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
+    wait_until(lambda: app.store.labels(labeller="vic"), 20, "the label stored")
+    (stored,) = app.store.stored_executions(labeller="vic", statuses=("in_progress", "completed"))
+    reached = stored.execution.metadata[REACHED_BY]
+    assert reached["chosen_before"] == list(episode.policy_chosen)
+    assert reached["why"].startswith("the model's choice failed here")
+    assert stored.execution.steps[0].chosen_demo == judged.last_try.demo_key
