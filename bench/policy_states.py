@@ -9,7 +9,10 @@ policy-state label so far. The control adds the same number of labelled states f
 own executions of extra training starts (perturbed with another seed), so a gain can be told
 apart from the number of labels. Every model is scored on the same 60 held-out training starts:
 greedy's success (episodes in simulation) and top-1 agreement with the oracle's labelled states.
-The test sets are never touched here.
+The test sets are never touched here. Where ``tries_round<r>.jsonl`` exists in --out-dir (the
+policy states' own tried candidates, `knotlab labels tries`), round r is fitted once more with
+them (point ``round<r>+tries``): without them a policy state's margin rows ask the oracle's demo
+to beat every other demo, including ones that would have done as well.
 
 Outputs in --out-dir (resumable: a finished round or arm is read back, a started labelling round
 continues): round<r>.jsonl (policy-state labels, knotlab's labels format, provenance in each
@@ -177,11 +180,14 @@ def main() -> int:
         flush=True,
     )
 
-    def point(name: str, executions: list[LabelledExecution], model_path: Path) -> dict:
+    def point(
+        name: str, executions: list[LabelledExecution], model_path: Path, extra_tries=None
+    ) -> dict:
         if name in curve["points"] and model_path.exists():
             return curve["points"][name]
         t0 = time.perf_counter()
-        _, validation = fit(executions, library, held_out, tries, model_path, args.workers)
+        fit_tries = {**tries, **(extra_tries or {})}
+        _, validation = fit(executions, library, held_out, fit_tries, model_path, args.workers)
         success = greedy_success(library_path, model_path, val_starts, args.workers)
         train_states = _states([e for e in executions if e.execution_id not in held_out])
         rec = {
@@ -195,6 +201,7 @@ def main() -> int:
             "validation_value_auc": validation.get("value_auc"),
             "validation_greedy_success": success,
             "validation_starts": len(val_starts),
+            "tried_states": len(fit_tries),
             "wall_s": round(time.perf_counter() - t0, 1),
         }
         curve["points"][name] = rec
@@ -221,6 +228,11 @@ def main() -> int:
         curve.setdefault("label_wall_s", {})[f"round{r}"] = round(time.perf_counter() - t0, 1)
         labels += _read(path)
         point(f"round{r}", labels, out / f"model_r{r}.npz")
+        # The policy states' own tried candidates (`knotlab labels tries --labels round<r>.jsonl
+        # --out tries_round<r>.jsonl`), when made: the same labels, margin rows that follow them.
+        round_tries = out / f"tries_round{r}.jsonl"
+        if round_tries.exists():
+            point(f"round{r}+tries", labels, out / f"model_r{r}_tries.npz", read_tries(round_tries))
         if r == 1 and args.control:
             target = _states(_read(path))
             control = _control(task, library, args.level, target, out, args.workers)
@@ -278,7 +290,8 @@ def _plot(curve: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     pts = curve["points"]
-    rounds = sorted((k for k in pts if k.startswith("round")), key=lambda k: int(k[5:]))
+    rounds = sorted((k for k in pts if k[5:].isdigit()), key=lambda k: int(k[5:]))
+    with_tries = sorted(k for k in pts if k.startswith("round") and k.endswith("+tries"))
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, key, label in (
         (axes[0], "validation_greedy_success", "greedy success, 60 held-out starts (Wilson 95 %)"),
@@ -287,7 +300,8 @@ def _plot(curve: dict, path: Path) -> None:
         xs = [pts[k]["train_states"] for k in rounds]
         ax.plot(xs, [pts[k][key] for k in rounds], "o-", label="policy-state rounds")
         if key == "validation_greedy_success":  # 60 episodes: show how wide that is
-            for name, colour in [(k, "C0") for k in rounds] + [("control", "C3")]:
+            marked = [(k, "C0") for k in rounds] + [(k, "C2") for k in with_tries]
+            for name, colour in [*marked, ("control", "C3")]:
                 if name in pts:
                     p = pts[name]
                     n = p["validation_starts"]
@@ -295,6 +309,20 @@ def _plot(curve: dict, path: Path) -> None:
                     ax.plot([p["train_states"]] * 2, [lo, hi], color=colour, alpha=0.4, lw=4)
         for k, x in zip(rounds, xs, strict=True):
             ax.annotate(k, (x, pts[k][key]), textcoords="offset points", xytext=(4, 4))
+        for k in with_tries:
+            ax.plot(
+                pts[k]["train_states"],
+                pts[k][key],
+                "D",
+                color="C2",
+                label="policy states with their tried candidates" if k == with_tries[0] else None,
+            )
+            ax.annotate(
+                k,
+                (pts[k]["train_states"], pts[k][key]),
+                textcoords="offset points",
+                xytext=(4, -12),
+            )
         if "control" in pts:
             ax.plot(
                 pts["control"]["train_states"],

@@ -112,3 +112,55 @@ def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root,
     alone = SimpleNamespace(out_dir=str(robust), matched=str(matched), robust_dir=None)
     assert robustness.report(alone) == 0
     assert (robust / "robustness.png").stat().st_size > 1000
+
+
+def _scores(main: float, hard: float, top1: float = 0.5) -> dict:
+    return {
+        lv: {"greedy_success": s, "starts": 60, "top1": top1, "value_auc": 0.9, "n_states": 175}
+        for lv, s in (("main", main), ("hard", hard))
+    }
+
+
+def test_level_models_choose_per_level_by_held_out_greedy_then_top1(
+    project_root, tmp_path, capsys
+) -> None:
+    level_models = load_bench_module(project_root, "level_models")
+    models = {
+        "main": {"scores": _scores(0.75, 0.40), "train_states": 695},
+        "hard": {"scores": _scores(0.60, 0.55), "train_states": 800},
+        "both": {"scores": _scores(0.75, 0.55, top1=0.6), "train_states": 1495},
+    }
+    assert level_models.choose(models, "main") == "both"  # a tie on success: top-1 decides
+    assert level_models.choose(models, "hard") == "both"
+    models["hard"]["scores"]["hard"]["greedy_success"] = 0.6
+    assert level_models.choose(models, "hard") == "hard"
+    report = {"models": models, "chosen": {"main": "both", "hard": "hard"}}
+    level_models._table(report)
+    text = capsys.readouterr().out
+    assert "| both | 1495 | 45/60 = 0.750 | 0.600 | 0.900 | 33/60 = 0.550 |" in text
+    level_models._plot(report, tmp_path / "levels.png")
+    assert (tmp_path / "levels.png").stat().st_size > 1000
+
+
+def test_policy_states_plot_and_table_show_rounds_refitted_with_their_tries(
+    project_root, tmp_path, capsys
+) -> None:
+    policy_states = load_bench_module(project_root, "policy_states")
+    point = {
+        "train_states": 700,
+        "validation_greedy_success": 0.75,
+        "validation_starts": 60,
+        "validation_top1": 0.49,
+        "validation_value_auc": 0.96,
+    }
+    curve = {
+        "points": {
+            "round0": point,
+            "round1": {**point, "train_states": 1357},
+            "round1+tries": {**point, "train_states": 1357, "validation_greedy_success": 0.8},
+        }
+    }
+    policy_states._plot(curve, tmp_path / "curve.png")
+    assert (tmp_path / "curve.png").stat().st_size > 1000
+    policy_states._table(curve)
+    assert "| round1+tries | 1357 | 0.800 (60 starts) |" in capsys.readouterr().out

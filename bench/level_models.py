@@ -1,0 +1,212 @@
+"""One model for both perturbation levels, or one per level: chosen on held-out training starts.
+
+The shipped model was fitted on the main level's oracle labels only; the hard level's starts are
+perturbed twice as far (rho 0.10 m against 0.05 m) and no hard-level label was ever seen. Each
+level's oracle executions are split by the same seeded fifth as `bench/policy_states.py` (the
+held-out starts are never trained on), and three models are fitted with the shipped model's
+settings (C = 1000, D = 10, landmarks 50 + 20, the tried candidates):
+
+- ``main``: the main level's training part (the shipped model's data: policy_states' round 0),
+- ``hard``: the hard level's training part,
+- ``both``: both training parts together.
+
+Every model is scored on each level's held-out starts: greedy's success (episodes in
+simulation, Wilson 95 % intervals) and top-1 / V-AUC on the held-out executions' labelled states.
+The test sets are never touched. The choice rule, fixed before the run: per level, the model with
+the higher greedy success on that level's held-out starts (ties: higher top-1); one model for
+both levels when it is chosen on both.
+
+Outputs in --out-dir (resumable: a fitted model and its scores are read back): model_<name>.npz,
+levels.json (models, scores, machine, wall times), levels.png. Same seed, same files.
+
+Usage: .venv/bin/python bench/level_models.py --out-dir results/level_models [--workers 2]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from policy_states import _read, fit, greedy_success  # noqa: E402
+
+from knotlab.core.demos.library import DemoLibrary  # noqa: E402
+from knotlab.core.demos.tasks import RopeTask  # noqa: E402
+from knotlab.core.experiments.bench.report import wilson_interval  # noqa: E402
+from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.selection.labels import LabelledExecution  # noqa: E402
+from knotlab.core.selection.model_selection import (  # noqa: E402
+    featurize_executions,
+    merge_training_data,
+    ranking_metrics,
+    split_executions,
+)
+from knotlab.core.selection.qmodel import QModel  # noqa: E402
+from knotlab.core.selection.tries import read_tries  # noqa: E402
+from knotlab.core.tasks import get_task  # noqa: E402
+
+LEVELS = ("main", "hard")
+MODELS = {"main": ("main",), "hard": ("hard",), "both": ("main", "hard")}
+
+
+@dataclass(frozen=True)
+class LevelSplit:
+    """One level's oracle executions, split into training and held-out parts by the seed."""
+
+    level: str
+    train: tuple[LabelledExecution, ...]
+    held_out: tuple[LabelledExecution, ...]
+    held_out_starts: tuple[RopeTask, ...]
+
+
+def level_split(task, level: str, labels: Path) -> LevelSplit:
+    """The level's executions split as bench/policy_states.py splits them (seed 0, a fifth)."""
+    executions = _read(labels)
+    if not executions:
+        raise SystemExit(f"{labels}: no labels (run scripts/label_hard.sh for the hard level)")
+    train_idx, val_idx = split_executions(len(executions), 0.2, 0)
+    held = tuple(executions[i] for i in val_idx)
+    held_ids = {e.task_id for e in held}
+    starts = tuple(s for s in task.files.load_task_set(level, "train") if s.task_id in held_ids)
+    return LevelSplit(level, tuple(executions[i] for i in train_idx), held, starts)
+
+
+def held_out_ranking(model_path: Path, split: LevelSplit, library: DemoLibrary) -> dict:
+    """Top-1 and V-AUC of a model on one level's held-out labelled states."""
+    model = QModel.load(model_path)
+    parts, _ = featurize_executions(
+        split.held_out, library, workers=1, progress=False, landmarks=model.landmarks
+    )
+    data = merge_training_data([p for p in parts if p is not None])
+    m = ranking_metrics(model, data)
+    return {"top1": m["top1"], "value_auc": m["value_auc"], "n_states": m["n_states"]}
+
+
+def main() -> int:
+    """Fit the three models, score each on both levels' held-out starts, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out-dir", type=Path, required=True)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    task = get_task("overhand")
+    library_path = task.files.library_path
+    library = DemoLibrary.load(library_path)
+    out = args.out_dir
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "levels.json"
+    report = json.loads(path.read_text()) if path.exists() else {"models": {}}
+    report["machine"] = machine_info()
+    splits = {
+        lv: level_split(task, lv, ROOT / f"results/labels_oracle_{lv}.jsonl") for lv in LEVELS
+    }
+    tries: dict = {}
+    for lv in LEVELS:
+        tries.update(read_tries(ROOT / f"results/tries_{lv}.jsonl"))
+    held_ids = frozenset(e.execution_id for s in splits.values() for e in s.held_out)
+    for name, levels in MODELS.items():
+        rec = report["models"].get(name, {})
+        model_path = out / f"model_{name}.npz"
+        if not (model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS)):
+            t0 = time.perf_counter()
+            executions = [e for lv in levels for e in splits[lv].train]
+            fit(executions, library, held_ids, tries, model_path, args.workers)
+            rec = {
+                "levels": list(levels),
+                "model": str(model_path.relative_to(ROOT))
+                if model_path.is_relative_to(ROOT)
+                else str(model_path),
+                "model_hash": QModel.load(model_path).content_hash(),
+                "train_executions": len(executions),
+                "train_states": sum(len(e.steps) for e in executions),
+                "scores": {},
+            }
+            for lv in LEVELS:
+                s = splits[lv]
+                success = greedy_success(
+                    library_path, model_path, list(s.held_out_starts), args.workers
+                )
+                rec["scores"][lv] = {
+                    "greedy_success": success,
+                    "starts": len(s.held_out_starts),
+                    **held_out_ranking(model_path, s, library),
+                }
+            rec["wall_s"] = round(time.perf_counter() - t0, 1)
+            report["models"][name] = rec
+            path.write_text(json.dumps(report, indent=1, sort_keys=True))
+        print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
+    report["chosen"] = {lv: choose(report["models"], lv) for lv in LEVELS}
+    path.write_text(json.dumps(report, indent=1, sort_keys=True))
+    _plot(report, out / "levels.png")
+    _table(report)
+    return 0
+
+
+def choose(models: dict, level: str) -> str:
+    """The rule fixed before the run: higher held-out greedy success, then higher top-1."""
+    return max(
+        models,
+        key=lambda n: (
+            models[n]["scores"][level]["greedy_success"],
+            models[n]["scores"][level]["top1"],
+        ),
+    )
+
+
+def _plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models = report["models"]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    width = 0.25
+    for i, name in enumerate(models):
+        for j, lv in enumerate(LEVELS):
+            sc = models[name]["scores"][lv]
+            n = sc["starts"]
+            k = round(sc["greedy_success"] * n)
+            lo, hi = wilson_interval(k, n)
+            x = j + (i - 1) * width
+            ax.bar(x, k / n, width, color=f"C{i}", label=name if j == 0 else None)
+            ax.plot([x, x], [lo, hi], color="black", lw=1.5)
+    ax.set_xticks(range(len(LEVELS)), [f"{lv} level held-out starts" for lv in LEVELS])
+    ax.set_ylabel("greedy success (Wilson 95 %)")
+    ax.set_ylim(0, 1)
+    ax.set_title("Which labels train the greedy policy: by level")
+    ax.legend(title="trained on")
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def _table(report: dict) -> None:
+    print(
+        "| model | training states | "
+        + " | ".join(f"{lv} greedy | {lv} top-1 | {lv} V-AUC" for lv in LEVELS)
+        + " |"
+    )
+    print("|---|---|" + "---|" * (3 * len(LEVELS)))
+    for name, rec in report["models"].items():
+        cells = []
+        for lv in LEVELS:
+            sc = rec["scores"][lv]
+            k, n = round(sc["greedy_success"] * sc["starts"]), sc["starts"]
+            cells += [f"{k}/{n} = {k / n:.3f}", f"{sc['top1']:.3f}", f"{sc['value_auc']:.3f}"]
+        print(f"| {name} | {rec['train_states']} | " + " | ".join(cells) + " |")
+    print(f"chosen on validation: {report['chosen']}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
