@@ -262,6 +262,7 @@ class LabelPanels:
             ("New rope", "R", a.resample),
             ("Undo last label", "U", a.undo),
             ("Stop the model here", "S", a.stop_model),
+            ("Label where the model goes (on / off)", "M", self._toggle_model_mode),
         ]
         for r in range(1, MAX_LISTED + 1):
             keys.append((f"Select rank {r}", str(r), _bind(a.select, r)))
@@ -270,6 +271,10 @@ class LabelPanels:
             cmd = gui.add_command(label, hotkey=key)  # type: ignore[arg-type]
             cmd.on_trigger(_call_with(fn))
             self.commands.append(cmd)
+
+    def _toggle_model_mode(self) -> None:
+        """M: tick or untick "Label where the model goes" (its update callback acts on it)."""
+        self.model_mode.value = not self.model_mode.value
 
     # ------------------------------------------------------------------ name
     def ask_name(self, on_name: Callable[[str], None]) -> None:

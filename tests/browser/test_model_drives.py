@@ -17,15 +17,18 @@ def _tick_model_mode(tab) -> None:
 
 
 def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
-    tab = tabs("uma")
-    _tick_model_mode(tab)
+    tab = tabs("uma", submit="enter")  # keyboard only
+    tab.press("m")
+    wait_until(lambda: tab.session.view().model_mode, 10, "M to turn the mode on")
+    checkbox = tab.page.get_by_role("checkbox", name="Label where the model goes")
+    wait_until(checkbox.is_checked, 10, "the checkbox ticked by M")
     wait_until(lambda: tab.session.view().phase is Phase.MODEL, 20, "the model to drive")
     wait_until(
         lambda: tab.page.get_by_role("button", name="Stop the model here (S)").is_visible(),
         10,
         "the stop button",
     )
-    tab.press("s")  # keyboard only from here
+    tab.press("s")
     view = wait_until(
         lambda: (v := tab.session.view()).phase is Phase.CHOOSING and v,
         DRIVE_TIMEOUT,
