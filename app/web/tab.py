@@ -329,14 +329,17 @@ class LabelTab:
             view = session.view()
             if view.phase is not Phase.MODEL or not view.candidates:
                 break
-            self.back_to_labelling()
+            # Not pulled back from Inspect or a playback: the model goes on driving behind it
+            # (into the hidden labelling view), and the labeller comes back to where it is.
+            labelling = self.drawer.showing == "label"
             chosen = view.candidates[0]
             view.message = (
                 f"the model executes its choice #{chosen.ranked.rank} {chosen.ranked.demo_key} "
                 "(S stops it after this step)"
             )
             with self.client.atomic():
-                self.drawer.draw(_trying(dataclasses.replace(view)), look=False)
+                if labelling:
+                    self.drawer.draw(_trying(dataclasses.replace(view)), look=False)
                 self.panels.show(view)
             recorder = FrameRecorder(FRAME_DT)
             active = (bool(chosen.closed_gt[0].any()), bool(chosen.closed_gt[1].any()))
@@ -356,12 +359,16 @@ class LabelTab:
             after = session.view()
             if outcome is DriveOutcome.TIED:
                 self._notify("the model tied the knot", after.message, "green")
-                self._draw(look=True)
+                if self.drawer.showing == "label":
+                    self._draw(look=True)
             elif outcome is DriveOutcome.HANDED_OVER:
                 self._notify("your turn", after.message, "blue")
         if self._still_driving(session):
             self.drawer.stop_animation()
-            self._draw()
+            if self.drawer.showing == "label":
+                self._draw()
+            else:
+                self.panels.show(session.view())
 
     def _still_driving(self, session: LabelSession) -> bool:
         """The tab is open and still labels with ``session`` (not closed, not taken over)."""
