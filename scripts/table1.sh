@@ -37,6 +37,11 @@ $bin/knotlab labels export --format jsonl --db "$db" --out "$labels" --force
 #     NN 48.0 %).
 $bin/knotlab labels tries --labels "$labels" --top 5 \
   --out "results/tries_${level}.jsonl" --force
+# STOP=labels: only the labels and tries (e.g. `STOP=labels scripts/table1.sh hard`, the hard
+# level's labels for bench/level_models.py).
+if [ "${STOP:-}" = labels ]; then
+  exit 0
+fi
 
 # 2. Train on the training labels only (validation split by execution, seed 0). Chosen on the
 #    validation split, never the test set: 50 + 20 landmark states, C = 1000, D = 10.
