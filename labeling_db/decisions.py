@@ -15,6 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from knotlab.core.selection.agreement import StateVisit
+from knotlab.core.selection.labels import REACHED_BY
 from knotlab.labeling_db.models import DeadEnd, Episode, Label, Labeller, RopeState
 from knotlab.labeling_db.records import StateRecord
 from knotlab.labeling_db.rows import _state_record
@@ -43,7 +44,13 @@ class DecisionsStore(StoreBase):
             episodes = {
                 row.id: row
                 for row in s.execute(
-                    select(Episode.id, Episode.task_id, Episode.start_state_id, Labeller.name)
+                    select(
+                        Episode.id,
+                        Episode.task_id,
+                        Episode.start_state_id,
+                        Episode.meta,
+                        Labeller.name,
+                    )
                     .join(Labeller, Episode.labeller_id == Labeller.id)
                     .where(Episode.status.in_(list(statuses)))
                     .order_by(Episode.id)
@@ -66,10 +73,18 @@ class DecisionsStore(StoreBase):
                     marked[ep_id].add(int(step))
             out = []
             for ep_id, ep in episodes.items():
-                steps = chosen[ep_id]
+                # An episode that begins where a policy's rollout left its start counts its
+                # states from the start too: step and path include the policy's choices, so
+                # its states pair with the same states of other labellers' episodes.
+                reached = (ep.meta or {}).get(REACHED_BY) or {}
+                offset = int(reached.get("step", 0))
+                before = tuple(str(k) for k in reached.get("chosen_before", ()))
+                steps = {offset + i: demo for i, demo in chosen[ep_id].items()}
                 start = start_key(ep.task_id, ep.start_state_id, ep_id)
                 for i in sorted(set(steps) | marked[ep_id]):
-                    path = tuple(steps[j] for j in range(i) if j in steps)
+                    if i < offset:
+                        continue
+                    path = before + tuple(steps[j] for j in range(offset, i) if j in steps)
                     if len(path) != i:
                         continue  # a gap in the steps: the state is not known
                     out.append(

@@ -90,3 +90,38 @@ def test_a_claim_passes_over_excluded_starts(db_url: str) -> None:
         assert store.start_episode("bo", exclude=[a, b]) is None  # c is held, a and b excluded
         other = store.start_episode("bo")
         assert other is not None and other.start_state_id == a
+
+
+def test_a_reached_episodes_states_pair_with_the_same_states_of_other_labellers(
+    db_url: str,
+) -> None:
+    from knotlab.core.selection.agreement import pair_agreement
+
+    with open_store(db_url) as store:
+        start, *_ = _starts(store)
+        ann = store.start_episode("ann", state_id=start, task_id="t-0")
+        for i, demo in enumerate(("s003-t0", "s004-t1", "s001-t1")):
+            store.add_label(ann.episode_id, _step_choosing(i, demo))
+        cyd = store.start_episode("cyd", state_id=start, task_id="t-0")
+        store.mark_reached(cyd.episode_id, np.zeros((12, 3)), REACHED)  # after s003, s004
+        store.add_label(cyd.episode_id, _step_choosing(0, "s001-t1"))
+        visits = [v for v in store.state_visits() if v.labeller == "cyd"]
+        assert [(v.step_index, v.path, v.chosen_demo) for v in visits] == [
+            (2, ("s003-t0", "s004-t1"), "s001-t1")
+        ]
+        pa = pair_agreement(store.state_visits(), "ann", "cyd")
+        assert (pa.n_compared, pa.n_agree) == (1, 1)
+
+
+def _step_choosing(i: int, demo: str) -> LabelledStep:
+    step = _step(i, i)
+    return LabelledStep(
+        step.step_index,
+        step.cloud_n3,
+        demo,
+        step.outcome,
+        step.rope_nodes_k3,
+        step.candidates,
+        step.candidate_scores_c,
+        step.model_version,
+    )
