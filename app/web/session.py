@@ -211,6 +211,7 @@ class LabelSession:
         self._passed_over: set[int] = set()  # starts the model tied, or R left, in model mode
         self._in_step = False  # a drive step is simulating (outside the lock)
         self._placed_from: np.ndarray | None = None  # the rope the model's last state came from
+        self._drive_version: str | None = None  # the model whose choices moved this rope
         self.model_failed: int | None = None  # rank of the model's failed choice in this state
         self.world = world if world is not None else RopeWorld()
         self._own_world = world is None
@@ -488,6 +489,12 @@ class LabelSession:
             if self._stop_model.is_set():
                 self._hand_over(None, "you stopped the model")
                 return DriveOutcome.HANDED_OVER
+            if self._model_chosen and self._drive_version != self.ranking.version:
+                # Another model ranks now (a retrain or a switch): the rollout so far is the
+                # old model's, so the state is labelled as that model left it.
+                self._hand_over(None, "the ranking model changed while it drove")
+                return DriveOutcome.HANDED_OVER
+            self._drive_version = self.ranking.version
             cand = self.candidates[0]
             snapshot, cloud, nodes = self.snapshot, self.cloud_n3, self.nodes_k3
             self._in_step = True
@@ -543,8 +550,8 @@ class LabelSession:
         self.phase = Phase.CHOOSING
         if self.first_step > 0:
             reached = {
-                "policy": "greedy" if self.ranking.model is not None else "nn",
-                "model": self.ranking.version,
+                "policy": "greedy" if self._drive_version is not None else "nn",
+                "model": self._drive_version,
                 "step": self.first_step,
                 "chosen_before": list(self._model_chosen),
                 "start_task_id": self.task_id,

@@ -185,3 +185,23 @@ def test_a_start_the_model_ties_is_passed_over_and_not_claimed_again(store, reso
         s.resample()
         assert s.view().task_id != tied_task
     s.close()
+
+
+def test_a_model_switch_mid_drive_hands_the_rope_over_as_the_old_model_left_it(store, resources):
+    s = _driving(store, resources)
+    shipped = resources.current.version
+    assert s.drive_step() is DriveOutcome.CONTINUES  # main-train-0000: its first step advances
+    try:
+        resources.use(None)  # another tab switched to nearest neighbour
+        s._show_state()  # the next state is ranked by the new ranking, as the app would
+        s.phase = Phase.MODEL
+        assert s.drive_step() is DriveOutcome.HANDED_OVER
+        assert "the ranking model changed" in s.view().message
+        info, _ = store.open_episode("ann")
+        (stored,) = store.stored_executions(labeller="ann", statuses=("in_progress",))
+        assert info.first_step == 1
+        reached = stored.execution.metadata[REACHED_BY]
+        assert reached["model"] == shipped and reached["policy"] == "greedy"
+    finally:
+        resources.use(shipped)
+        s.close()
