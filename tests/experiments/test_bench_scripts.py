@@ -164,3 +164,25 @@ def test_policy_states_plot_and_table_show_rounds_refitted_with_their_tries(
     assert (tmp_path / "curve.png").stat().st_size > 1000
     policy_states._table(curve)
     assert "| round1+tries | 1357 | 0.800 (60 starts) |" in capsys.readouterr().out
+
+
+def test_greedy_validation_pairs_models_on_the_same_starts(project_root, tmp_path) -> None:
+    import pytest
+
+    gv = load_bench_module(project_root, "greedy_validation")
+    lines = [
+        {"model": m, "task_id": f"v{i}", "success": ok}
+        for m, pattern in (("ref", "1100"), ("new", "1011"))
+        for i, ok in enumerate(c == "1" for c in pattern)
+    ]
+    res = gv.summarise(lines, ["ref", "new"])
+    assert res["ref"]["successes"] == 2 and res["new"]["successes"] == 3
+    assert (res["new"]["wins_vs_first"], res["new"]["losses_vs_first"]) == (2, 1)
+    assert res["ref"]["sign_test_p"] == 1.0  # against itself: no discordant pairs
+    assert gv.sign_test(10, 0) < 0.01
+    model = tmp_path / "m.npz"
+    model.write_bytes(b"")
+    assert gv.parse_models(f"a={model},b={model}") == {"a": model, "b": model}
+    for bad in ("a", f"a={model},a={model}", "a=/no/such.npz"):
+        with pytest.raises(SystemExit):
+            gv.parse_models(bad)
