@@ -283,6 +283,9 @@ def _control(task, library, level_name: str, target: int, out: Path, workers: in
     return chosen
 
 
+_NUDGE = {"C2": 40, "C3": -40}  # x offsets (states) of points drawn at the same count
+
+
 def _plot(curve: dict, path: Path) -> None:
     import matplotlib
 
@@ -306,12 +309,13 @@ def _plot(curve: dict, path: Path) -> None:
                     p = pts[name]
                     n = p["validation_starts"]
                     lo, hi = wilson_interval(round(p[key] * n), n)
-                    ax.plot([p["train_states"]] * 2, [lo, hi], color=colour, alpha=0.4, lw=4)
+                    x = p["train_states"] + _NUDGE.get(colour, 0)  # same counts: side by side
+                    ax.plot([x] * 2, [lo, hi], color=colour, alpha=0.4, lw=4)
         for k, x in zip(rounds, xs, strict=True):
             ax.annotate(k, (x, pts[k][key]), textcoords="offset points", xytext=(4, 4))
         for k in with_tries:
             ax.plot(
-                pts[k]["train_states"],
+                pts[k]["train_states"] + _NUDGE["C2"],
                 pts[k][key],
                 "D",
                 color="C2",
@@ -319,13 +323,13 @@ def _plot(curve: dict, path: Path) -> None:
             )
             ax.annotate(
                 k,
-                (pts[k]["train_states"], pts[k][key]),
+                (pts[k]["train_states"] + _NUDGE["C2"], pts[k][key]),
                 textcoords="offset points",
                 xytext=(4, -12),
             )
         if "control" in pts:
             ax.plot(
-                pts["control"]["train_states"],
+                pts["control"]["train_states"] + _NUDGE["C3"],
                 pts["control"][key],
                 "s",
                 color="C3",
