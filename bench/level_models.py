@@ -8,7 +8,10 @@ settings (C = 1000, D = 10, landmarks 50 + 20, the tried candidates):
 
 - ``main``: the main level's training part (the shipped model's data: policy_states' round 0),
 - ``hard``: the hard level's training part,
-- ``both``: both training parts together.
+- ``both``: both training parts together,
+- ``both+policy``: both, plus the main level's round-1 policy states (the oracle's labels of the
+  states greedy reached from the main training starts, `bench/policy_states.py`, with their own
+  tried candidates): every label made so far that no held-out start contributed to.
 
 Every model is scored on each level's held-out starts: greedy's success (episodes in
 simulation, Wilson 95 % intervals) and top-1 / V-AUC on the held-out executions' labelled states.
@@ -57,7 +60,13 @@ from knotlab.core.selection.tries import read_tries  # noqa: E402
 from knotlab.core.tasks import get_task  # noqa: E402
 
 LEVELS = ("main", "hard")
-MODELS = {"main": ("main",), "hard": ("hard",), "both": ("main", "hard")}
+MODELS = {
+    "main": ("main",),
+    "hard": ("hard",),
+    "both": ("main", "hard"),
+    "both+policy": ("main", "hard", "policy"),
+}
+POLICY_STATES = ROOT / "results/policy_states_main"  # round1.jsonl and tries_round1.jsonl
 
 
 @dataclass(frozen=True)
@@ -113,13 +122,20 @@ def main() -> int:
     tries: dict = {}
     for lv in LEVELS:
         tries.update(read_tries(ROOT / f"results/tries_{lv}.jsonl"))
+    tries.update(read_tries(POLICY_STATES / "tries_round1.jsonl"))
+    # Round 1 rolled greedy out from the main level's training part only: no held-out start.
+    policy = tuple(_read(POLICY_STATES / "round1.jsonl"))
+    held_tasks = {e.task_id for s in splits.values() for e in s.held_out}
+    assert not any(e.metadata["reached_by"]["start_task_id"] in held_tasks for e in policy)
     held_ids = frozenset(e.execution_id for s in splits.values() for e in s.held_out)
     for name, levels in MODELS.items():
         rec = report["models"].get(name, {})
         model_path = out / f"model_{name}.npz"
         if not (model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS)):
             t0 = time.perf_counter()
-            executions = [e for lv in levels for e in splits[lv].train]
+            executions = [
+                e for lv in levels for e in (policy if lv == "policy" else splits[lv].train)
+            ]
             fit(executions, library, held_ids, tries, model_path, args.workers)
             rec = {
                 "levels": list(levels),
