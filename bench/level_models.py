@@ -186,15 +186,16 @@ def _plot(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     models = report["models"]
-    fig, ax = plt.subplots(figsize=(7, 4))
-    width = 0.25
-    for i, name in enumerate(models):
+    names = [n for n in MODELS if n in models]  # the fixed order, not the file's sorted one
+    fig, ax = plt.subplots(figsize=(8, 4))
+    width = 0.8 / len(names)
+    for i, name in enumerate(names):
         for j, lv in enumerate(LEVELS):
             sc = models[name]["scores"][lv]
             n = sc["starts"]
             k = round(sc["greedy_success"] * n)
             lo, hi = wilson_interval(k, n)
-            x = j + (i - 1) * width
+            x = j + (i - (len(names) - 1) / 2) * width
             ax.bar(x, k / n, width, color=f"C{i}", label=name if j == 0 else None)
             ax.plot([x, x], [lo, hi], color="black", lw=1.5)
     ax.set_xticks(range(len(LEVELS)), [f"{lv} level held-out starts" for lv in LEVELS])
@@ -214,7 +215,8 @@ def _table(report: dict) -> None:
         + " |"
     )
     print("|---|---|" + "---|" * (3 * len(LEVELS)))
-    for name, rec in report["models"].items():
+    for name in [n for n in MODELS if n in report["models"]]:
+        rec = report["models"][name]
         cells = []
         for lv in LEVELS:
             sc = rec["scores"][lv]
