@@ -93,11 +93,14 @@ def save_export(data: bytes, folder: Path, stem: str, own: set[Path]) -> Path:
 
 
 def results_dirs(root: Path = defaults.RESULTS_DIR) -> list[str]:
-    """Bench results directories under results/ (those with a run.json), main level first."""
+    """Bench results directories under results/ (those with a run.json): the main level first,
+    Table I's runs first within a level (the default source is the committed Table I)."""
     if not root.is_dir():
         return []
     found = sorted(str(p.parent) for p in root.glob("*/run.json"))
-    return sorted(found, key=lambda d: (not d.endswith("_main"), d))
+    return sorted(
+        found, key=lambda d: (not d.endswith("_main"), not Path(d).name.startswith("table1"), d)
+    )
 
 
 def first_task_id(results_dir: str) -> str | None:
