@@ -9,30 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knotlab.app import defaults
-from knotlab.app.web.resources import load_resources
 from knotlab.app.web.session import DriveOutcome, LabelSession, Phase, SessionError, stored_nodes
 from knotlab.core.selection.labels import REACHED_BY
-from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.sim import RopeWorld
-from knotlab.labeling_db.store import open_store
 
 MAX_DRIVE = 40  # drive steps a test allows before it fails (a start takes at most 5)
-
-
-@pytest.fixture(scope="module")
-def resources():
-    res = load_resources(defaults.LIBRARY_PATH, defaults.task_set_path("main", "train"), 5)
-    res.use(res.add_model(QModel.load(defaults.MODEL_PATH), "shipped").version)
-    return res
-
-
-@pytest.fixture
-def store(tmp_path, resources):
-    s = open_store(f"sqlite:///{tmp_path / 'k.db'}")
-    resources.register_starts(s, "main")
-    yield s
-    s.close()
 
 
 def _driving(store, resources, name: str = "ann") -> LabelSession:

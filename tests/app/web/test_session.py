@@ -10,29 +10,10 @@ import contextlib
 import numpy as np
 import pytest
 
-from knotlab.app import defaults
-from knotlab.app.web.resources import load_resources
 from knotlab.app.web.session import LabelSession, Phase, SessionError
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
-from knotlab.core.selection.qmodel import QModel
-from knotlab.labeling_db.store import open_store
-
-
-@pytest.fixture(scope="module")
-def resources():
-    res = load_resources(defaults.LIBRARY_PATH, defaults.task_set_path("main", "train"), 5)
-    res.use(res.add_model(QModel.load(defaults.MODEL_PATH), "shipped").version)
-    return res
-
-
-@pytest.fixture
-def store(tmp_path, resources):
-    s = open_store(f"sqlite:///{tmp_path / 'k.db'}")
-    resources.register_starts(s, "main")
-    yield s
-    s.close()
 
 
 def _session(store, resources, name="ann", **kw) -> LabelSession:
