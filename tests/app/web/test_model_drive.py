@@ -12,6 +12,7 @@ import pytest
 from knotlab.app.web.session import DriveOutcome, LabelSession, Phase, SessionError, stored_nodes
 from knotlab.core.selection.labels import REACHED_BY
 from knotlab.core.world.sim import RopeWorld
+from tests.app.web.sessions import accept_something
 
 MAX_DRIVE = 40  # drive steps a test allows before it fails (a start takes at most 5)
 
@@ -35,15 +36,6 @@ def _drive_until(s: LabelSession, wanted: DriveOutcome) -> list[DriveOutcome]:
         if out is DriveOutcome.HANDED_OVER:
             s.resample()
     raise AssertionError(f"no {wanted} within {MAX_DRIVE} steps: {seen}")
-
-
-def _accept_something(s: LabelSession) -> str:
-    while True:
-        result = s.try_selected()
-        if result.acceptable:
-            s.accept()
-            return result.demo_key
-        s.reject()
 
 
 def test_the_model_moves_the_rope_by_its_own_choices_until_one_fails(store, resources):
@@ -75,7 +67,7 @@ def test_the_model_moves_the_rope_by_its_own_choices_until_one_fails(store, reso
     finally:
         world.close()
     # The expert's label is of the reached state, with how it was reached.
-    _accept_something(s)
+    accept_something(s)
     after = s.view()
     assert after.rollout_step == view.first_step + 1 and after.step_limit == view.step_limit
     (stored,) = store.stored_executions(labeller="ann", statuses=("in_progress",))
@@ -92,7 +84,7 @@ def test_undo_and_resume_return_to_the_state_the_model_reached_bit_for_bit(store
     s = _driving(store, resources)
     _drive_until(s, DriveOutcome.HANDED_OVER)
     shown = s.view()
-    _accept_something(s)
+    accept_something(s)
     s.undo()
     back = s.view()
     assert back.phase is Phase.CHOOSING  # the expert's turn again, the model does not redrive
@@ -102,7 +94,7 @@ def test_undo_and_resume_return_to_the_state_the_model_reached_bit_for_bit(store
         c.ranked.demo_key for c in shown.candidates
     ]
     assert [c.ranked.score for c in back.candidates] == [c.ranked.score for c in shown.candidates]
-    _accept_something(s)
+    accept_something(s)
     after = s.view()
     s.world.close()  # the tab went away without closing: a restart resumes
     again = LabelSession(store, resources, "ann")
@@ -124,7 +116,7 @@ def test_stopping_before_the_first_step_hands_the_start_over_as_a_plain_episode(
     assert not view.rejected  # nothing failed
     with pytest.raises(SessionError, match="not driving"):
         s.stop_model()
-    _accept_something(s)
+    accept_something(s)
     (stored,) = store.stored_executions(labeller="ann", statuses=("in_progress",))
     assert REACHED_BY not in stored.execution.metadata
     s.close()

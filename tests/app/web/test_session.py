@@ -14,22 +14,13 @@ from knotlab.app.web.session import LabelSession, Phase, SessionError
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
+from tests.app.web.sessions import accept_something
 
 
 def _session(store, resources, name="ann", **kw) -> LabelSession:
     s = LabelSession(store, resources, name, **kw)
     s.start()
     return s
-
-
-def _accept_something(s: LabelSession) -> str:
-    """Try candidates in rank order until one executes; accept it; its demo key."""
-    while True:
-        result = s.try_selected()
-        if result.acceptable:
-            s.accept()
-            return result.demo_key
-        s.reject()
 
 
 def test_the_ranking_shown_is_the_greedy_policys_and_nn_without_a_model(store, resources):
@@ -66,7 +57,7 @@ def test_the_ranking_shown_is_the_greedy_policys_and_nn_without_a_model(store, r
 def test_accept_stores_state_choice_ranking_model_and_resume_point(store, resources):
     s = _session(store, resources)
     shown = [c.ranked.demo_key for c in s.view().candidates]
-    chosen = _accept_something(s)
+    chosen = accept_something(s)
     (label,) = store.labels(labeller="ann")
     assert label.chosen_demo == chosen and label.step_index == 0
     execution = store.training_executions(include_unfinished=True)[0]
@@ -119,7 +110,7 @@ def test_undo_goes_back_to_the_state_of_the_undone_step(store, resources):
     s = _session(store, resources)
     start_nodes = s.view().rope_nodes_k3.copy()
     task = s.view().task_id
-    _accept_something(s)
+    accept_something(s)
     s.undo()
     assert store.labels(labeller="ann") == []
     view = s.view()
@@ -132,7 +123,7 @@ def test_undo_goes_back_to_the_state_of_the_undone_step(store, resources):
 def test_the_step_limit_ends_the_episode_and_claims_the_next_start(store, resources):
     s = _session(store, resources, max_steps=1)
     first = s.view().task_id
-    _accept_something(s)
+    accept_something(s)
     assert s.view().task_id != first and s.view().step_index == 0
     (done,) = [e for e in store.stored_executions() if e.status == "completed"]
     assert len(done.execution.steps) == 1
@@ -194,7 +185,7 @@ def test_with_overlap_a_second_labeller_gets_a_start_another_holds(store, resour
 
 def test_undo_on_a_fresh_rope_leaves_the_finished_episode_finished(store, resources):
     s = _session(store, resources, max_steps=1)
-    _accept_something(s)  # step limit 1: the episode is finished, a fresh rope is claimed
+    accept_something(s)  # step limit 1: the episode is finished, a fresh rope is claimed
     fresh = s.view().task_id
     s.undo()
     # Said in the status area (the panel shows the message), not a toast or an exception.
@@ -224,7 +215,7 @@ def test_the_last_label_and_the_episodes_end_are_one_transaction(store, resource
 
     monkeypatch.setattr(store, "finish_episode", crash)
     with contextlib.suppress(RuntimeError):
-        _accept_something(s)
+        accept_something(s)
     info = store.episode(episode_id)
     # Never a stored last step on an episode that is still open (a resume would land on a
     # knotted rope at "step 2 of 1"): both or neither.
@@ -276,10 +267,10 @@ def _ranking(s: LabelSession) -> list[tuple[str, float, float]]:
 
 def test_undo_and_resume_reproduce_the_ranking_shown_bit_for_bit(tmp_path, store, resources):
     s = _session(store, resources, "uma")
-    _accept_something(s)  # step 1's state: placed from the stored rope
+    accept_something(s)  # step 1's state: placed from the stored rope
     shown, nodes = _ranking(s), s.view().rope_nodes_k3.copy()
     assert shown
-    _accept_something(s)
+    accept_something(s)
     s.undo()  # back to step 1: the same state, the same ranking, to the last bit
     assert s.view().step_index == 1
     assert np.array_equal(s.view().rope_nodes_k3, nodes)
@@ -291,7 +282,7 @@ def test_undo_and_resume_reproduce_the_ranking_shown_bit_for_bit(tmp_path, store
     assert np.array_equal(again.view().rope_nodes_k3, nodes)
     assert _ranking(again) == shown
     # and the label made there stores the ranking shown
-    _accept_something(again)
+    accept_something(again)
     (mine,) = [e for e in store.training_executions(include_unfinished=True) if e.labeller == "uma"]
     step = mine.steps[1]
     assert list(step.candidates) == [k for k, _, _ in shown]
