@@ -369,6 +369,11 @@ class LabelTab:
                 self._draw()
             else:
                 self.panels.show(session.view())
+        with self._driver_lock:
+            self._driver = None
+        # A rope that entered the MODEL phase while this loop was ending (a quick untick and
+        # tick, an accept that claimed the next start) found the driver still alive: drive it.
+        self._drive_if_needed()
 
     def _still_driving(self, session: LabelSession) -> bool:
         """The tab is open and still labels with ``session`` (not closed, not taken over)."""

@@ -11,6 +11,19 @@ from tests.browser.conftest import wait_until
 DRIVE_TIMEOUT = 120.0  # s: a few starts of up to five fast-forwarded model steps
 
 
+def _labelled(app, labeller: str):
+    """The labeller's one execution with a label (an accept that ends an episode claims the
+    next start: its new, empty episode is not it)."""
+    (stored,) = [
+        se
+        for se in app.store.stored_executions(
+            labeller=labeller, statuses=("in_progress", "completed")
+        )
+        if se.execution.steps
+    ]
+    return stored
+
+
 def _tick_model_mode(tab) -> None:
     tab.page.get_by_text("Label where the model goes").click()
     wait_until(lambda: tab.session.view().model_mode, 10, "the mode on")
@@ -52,7 +65,7 @@ def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
         tab.press("n")
         wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
     wait_until(lambda: app.store.labels(labeller="uma"), 20, "the label stored")
-    (stored,) = app.store.stored_executions(labeller="uma", statuses=("in_progress", "completed"))
+    stored = _labelled(app, "uma")
     assert view.first_step >= 1  # S came while the first step ran: the model moved the rope
     reached = stored.execution.metadata[REACHED_BY]
     assert reached["step"] == view.first_step and reached["why"] == "you stopped the model"
@@ -69,15 +82,17 @@ def test_the_model_drives_until_its_choice_fails_then_the_labeller_takes_over(ta
         "the model to reach a state it fails in",
     )
     assert "the model's choice failed here" in view.message
-    body = tab.page.inner_text("body")
-    assert f"step {view.rollout_step + 1} of {view.step_limit}" in body
+    step = f"step {view.rollout_step + 1} of {view.step_limit}"
+    wait_until(lambda: step in tab.page.inner_text("body"), 10, "the panel's step")
     failed = tab.server_tab.panels.cand_buttons[0]
     wait_until(lambda: failed.disabled, 10, "the model's failed choice greyed out")
     tab.screenshot("model_handed_over")
     episode, _ = app.store.open_episode("vic")
     assert episode.first_step == view.first_step
     assert len(episode.policy_chosen) == view.first_step
-    assert "the model's choice: failed" in tab.page.inner_text("body")
+    wait_until(
+        lambda: "the model's choice: failed" in tab.page.inner_text("body"), 10, "the grey mark"
+    )
     # The expert labels it with the mouse: the selected candidate is tried, then judged.
     for _ in range(len(view.candidates)):
         tab.button("Try (Enter)").click()
@@ -90,7 +105,7 @@ def test_the_model_drives_until_its_choice_fails_then_the_labeller_takes_over(ta
         tab.button("Reject (N)").click()
         wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
     wait_until(lambda: app.store.labels(labeller="vic"), 20, "the label stored")
-    (stored,) = app.store.stored_executions(labeller="vic", statuses=("in_progress", "completed"))
+    stored = _labelled(app, "vic")
     reached = stored.execution.metadata[REACHED_BY]
     assert reached["chosen_before"] == list(episode.policy_chosen)
     assert reached["why"].startswith("the model's choice failed here")
