@@ -28,7 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "generate",
         help="run the scripted expert over seeded start ropes and write a library",
         description="Run the state-aware scripted expert over seeded start ropes in parallel "
-        "processes and keep the first N demos that end in an overhand knot (3 segments each). "
+        "processes (the --task's expert) and keep the first N demos that reach its knot (one "
+        "segment per expert step). "
         "The same seed gives a bit-identical file for any number of workers.",
     )
     gen.add_argument("--starts", type=integer(1), default=50, help="successful demos to keep (50)")

@@ -3,11 +3,11 @@
 Decisions (documented here because the library's users depend on them):
 - **Only successful demonstrations are kept.** Candidate start ropes j = 0, 1, 2, ... are drawn
   from ``SeedSequence(seed, spawn_key=(j,))``; the expert runs on each, and the library holds the
-  first ``n_starts`` candidates (in candidate order) whose run ended in an overhand knot, renumbered
-  0..n_starts-1. Every segment's ``metadata["demo_knotted"]`` is therefore True; the expert's
-  success rate during generation is stored in the library metadata. Candidates run in parallel
-  processes in fixed-size batches, and which ones are kept depends only on the seed, so the file
-  is bit-identical for any number of workers.
+  first ``n_starts`` candidates (in candidate order) whose run reached the task's knot,
+  renumbered 0..n_starts-1. Every segment's ``metadata["demo_knotted"]`` is therefore True; the
+  expert's success rate during generation is stored in the library metadata. Candidates run in
+  parallel processes in fixed-size batches, and which ones are kept depends only on the seed, so
+  the file is bit-identical for any number of workers.
 - **Replay is exact by construction.** Before every step the expert calls
   ``world.reset(pre_nodes)`` with the rope nodes read back after the previous step (the rope is at
   rest after ``execute``'s settle), so ``reset(pre_nodes) + execute(trajectory)`` reproduces
@@ -147,7 +147,8 @@ def generate_library(
     progress: bool = True,
     max_candidates: int | None = None,
 ) -> GenReport:
-    """A library of ``n_starts`` successful expert demos (3 segments each), seeded and parallel."""
+    """A library of ``n_starts`` successful expert demos (one segment per expert step: the
+    task's ``expert_steps``), seeded and parallel."""
     from knotlab.core.parallel import default_workers, imap_processes
 
     settings = settings or GenSettings()
@@ -179,7 +180,8 @@ def generate_library(
     last = kept[-1].candidate
     tried = [r for r in results if r.candidate <= last]
     n_knot = sum(r.knotted for r in tried)
-    fails = {str(k): sum(1 for r in tried if r.failed_step == k) for k in range(3)}
+    n_steps = get_task(settings.task).expert_steps
+    fails = {str(k): sum(1 for r in tried if r.failed_step == k) for k in range(n_steps)}
     segments = []
     for new_index, r in enumerate(kept):
         for st in r.steps:

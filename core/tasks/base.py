@@ -113,6 +113,20 @@ class Task(Protocol):
         """Draw a start rope and an expert style from ``seed`` and run the scripted expert."""
         ...
 
+    def run_expert(
+        self,
+        world: RopeWorld,
+        start_nodes_k3: np.ndarray,
+        *,
+        mirrored: bool,
+        seed: int,
+        max_attempts: int,
+        max_restarts: int,
+    ) -> ExpertRun:
+        """The scripted expert with its nominal style (or that style's mirror image) from a
+        given start rope; ``seed`` seeds its retries."""
+        ...
+
 
 class ExpertStep(Protocol):
     """One accepted expert step: the rope before and after and the trajectory between."""
@@ -135,6 +149,7 @@ class ExpertRun(Protocol):
     failed_step: int | None
     wall_time: float
     restarts: int
+    failures_by_step: tuple[int, ...]  # rejected tries of each step
     style: _Style
 
 

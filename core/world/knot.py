@@ -158,6 +158,24 @@ def gauss_code(nodes_k3: np.ndarray) -> tuple[str, int]:
     return " ".join(parts), n
 
 
+def _relabel(tokens: list[str]) -> str:
+    labels: dict[str, int] = {}
+    out = []
+    for tok in tokens:
+        labels.setdefault(tok[1:], len(labels))
+        out.append(f"{tok[0]}{labels[tok[1:]]}")
+    return " ".join(out)
+
+
+def canonical_code(code: str) -> str:
+    """Direction-free form of a crossing code: the smaller of the code and its reversal, each
+    with crossings renumbered by first visit (a rope's code read from either end)."""
+    tokens = code.split()
+    if not tokens:
+        return ""
+    return min(_relabel(tokens), _relabel(tokens[::-1]))
+
+
 def analyse_knot(rope_nodes_k3: np.ndarray) -> KnotAnalysis:
     """Knot invariants of the rope closed above and below, plus its crossing code."""
     nodes = as_nodes(rope_nodes_k3, min_nodes=2)
@@ -175,6 +193,61 @@ def analyse_knot(rope_nodes_k3: np.ndarray) -> KnotAnalysis:
         gauss_code=code,
         n_crossings=n_open,
     )
+
+
+def _alexander_minor_exact(cr: Crossings, t: int) -> int:
+    """The Alexander matrix minor's determinant at integer t, in exact integer arithmetic."""
+    n = cr.sign_c.size
+    if n <= 1:
+        return 1
+    order = np.argsort(cr.under_pos_c, kind="stable")
+    rank = np.empty(n, dtype=int)
+    rank[order] = np.arange(n)
+    over_arc = (np.searchsorted(cr.under_pos_c[order], cr.over_pos_c, side="right") - 1) % n
+    rows = [[0] * n for _ in range(n)]
+    for c in range(n):
+        i, j, k = (int(rank[c]) - 1) % n, int(rank[c]), int(over_arc[c])
+        rows[c][k] += 1 - t
+        rows[c][i] += t if cr.sign_c[c] > 0 else -1
+        rows[c][j] += -1 if cr.sign_c[c] > 0 else t
+    return _exact_det([row[:-1] for row in rows[:-1]])
+
+
+def alexander_polynomial(rope_nodes_k3: np.ndarray, above: bool = True) -> tuple[int, ...]:
+    """Alexander polynomial of the rope closed far above (or below): integer coefficients,
+    lowest power first, normalised (no factor t or -1: the lowest coefficient is positive).
+
+    The minor's determinant is a polynomial of degree below the crossing count n; it is
+    evaluated exactly at n integers near 0 and interpolated (exact rationals). Unknot (1,),
+    trefoil (1, -1, 1), figure-eight (1, -3, 1).
+    """
+    nodes = as_nodes(rope_nodes_k3, min_nodes=2)
+    cr = _crossings(_closed(nodes, above), cyclic=True)
+    n = max(cr.sign_c.size, 1)
+    ts = [(k + 1) // 2 * (1 if k % 2 else -1) for k in range(n)]  # 0, 1, -1, 2, -2, ...
+    values = [Fraction(_alexander_minor_exact(cr, t)) for t in ts]
+    coeffs = [Fraction(0)] * n
+    for a, (t_a, v_a) in enumerate(zip(ts, values, strict=True)):
+        # Lagrange basis polynomial of t_a, built coefficient by coefficient.
+        basis = [Fraction(1)]
+        denom = Fraction(1)
+        for b, t_b in enumerate(ts):
+            if b == a:
+                continue
+            basis = [Fraction(0), *basis]
+            for d in range(len(basis) - 1):
+                basis[d] -= t_b * basis[d + 1]
+            denom *= t_a - t_b
+        for d, c in enumerate(basis):
+            coeffs[d] += v_a * c / denom
+    ints = [int(c) for c in coeffs]
+    while len(ints) > 1 and ints[-1] == 0:
+        ints.pop()
+    while len(ints) > 1 and ints[0] == 0:
+        ints.pop(0)
+    if ints[0] < 0:
+        ints = [-c for c in ints]
+    return tuple(ints)
 
 
 def is_overhand_knot(rope_nodes_k3: np.ndarray) -> bool:

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.tasks.expert_moves import sample_start_rope
 from knotlab.core.tasks.overhand.expert import (
     STAGE_CODES,
     ExpertStyle,
     run_expert,
-    sample_start_rope,
     sample_style,
 )
 from knotlab.core.world.knot import analyse_knot

@@ -7,7 +7,7 @@ import pytest
 
 from knotlab.core.demos.tasks import TaskSet, generate_tasks, min_clearance, task_seed
 from knotlab.core.errors import CorruptFileError
-from knotlab.core.tasks.overhand.expert import sample_start_rope
+from knotlab.core.tasks.expert_moves import sample_start_rope
 from knotlab.core.world.rope import has_xy_self_intersection, rope_length
 
 

@@ -8,7 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from knotlab.core.tasks.overhand.knot_sequence import overhand_sequence
-from knotlab.core.world.knot import analyse_knot, gauss_code, is_overhand_knot
+from knotlab.core.world.knot import (
+    alexander_polynomial,
+    analyse_knot,
+    canonical_code,
+    gauss_code,
+    is_overhand_knot,
+)
 from knotlab.core.world.rope import resample_by_arc_length, straight_rope
 from knotlab.core.world.sim import RopeWorld
 
@@ -177,3 +183,20 @@ def test_fixed_sequence_ties_an_overhand_knot_in_the_simulator(simulated_steps) 
     res = analyse_knot(final)
     assert res.is_overhand, res
     assert res.gauss_code == "U0 O1 U2 O0 U1 O2"
+
+
+def test_alexander_polynomials_of_known_knots_under_both_closures() -> None:
+    for above in (True, False):
+        assert alexander_polynomial(kinked_rope(2), above) == (1,)
+        assert alexander_polynomial(straight_rope(), above) == (1,)
+        assert alexander_polynomial(trefoil(), above) == (1, -1, 1)
+        assert alexander_polynomial(trefoil(mirror=True), above) == (1, -1, 1)
+        assert alexander_polynomial(figure_eight(), above) == (1, -3, 1)
+        assert alexander_polynomial(figure_eight()[::-1].copy(), above) == (1, -3, 1)
+
+
+def test_a_canonical_code_is_the_same_from_either_end() -> None:
+    code, _ = gauss_code(trefoil())
+    backwards, _ = gauss_code(trefoil()[::-1].copy())
+    assert canonical_code(code) == canonical_code(backwards)
+    assert canonical_code("") == ""

@@ -62,7 +62,8 @@ class OverhandTask:
     def demonstrate(self, world: RopeWorld, settings: GenSettings, seed: int) -> DemoRun:
         """A gently curved start rope and an expert style drawn from ``seed``, then the
         scripted 3-step expert (retries and new loops as ``settings`` allow)."""
-        from knotlab.core.tasks.overhand.expert import run_expert, sample_start_rope, sample_style
+        from knotlab.core.tasks.expert_moves import sample_start_rope
+        from knotlab.core.tasks.overhand.expert import run_expert, sample_style
 
         rng = np.random.default_rng(seed)
         start = sample_start_rope(
@@ -79,4 +80,27 @@ class OverhandTask:
             seed=seed,
             max_attempts=settings.max_attempts,
             max_restarts=settings.max_restarts,
+        )
+
+    def run_expert(
+        self,
+        world: RopeWorld,
+        start_nodes_k3: np.ndarray,
+        *,
+        mirrored: bool,
+        seed: int,
+        max_attempts: int,
+        max_restarts: int,
+    ) -> DemoRun:
+        """The expert's nominal style (mirrored: chirality -1) from ``start_nodes_k3``."""
+        from knotlab.core.tasks.overhand.expert import ExpertStyle, run_expert
+
+        style = ExpertStyle(chirality=-1 if mirrored else 1)
+        return run_expert(
+            world,
+            start_nodes_k3,
+            style,
+            seed=seed,
+            max_attempts=max_attempts,
+            max_restarts=max_restarts,
         )

@@ -49,11 +49,21 @@ import numpy as np
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.seeds import generator
-from knotlab.core.tasks.overhand.knot_sequence import pick_place, single_gripper_trajectory
+from knotlab.core.tasks.expert_moves import (
+    RopeEnd,
+    arc_lengths,
+    end_grasp_point,
+    pen_lay,
+    perp,
+    pick_beyond_tip,
+    pick_place,
+    point_at,
+    unit,
+)
 from knotlab.core.tasks.overhand.stages import Stage, stage_of_code
 from knotlab.core.world.knot import analyse_knot
 from knotlab.core.world.protocol import World
-from knotlab.core.world.rope import resample_by_arc_length, segment_crossings_xy
+from knotlab.core.world.rope import segment_crossings_xy
 from knotlab.core.world.trajectory import GripperTrajectory
 
 N_STEPS = 3
@@ -149,68 +159,6 @@ def _jitter(style: ExpertStyle, rng: np.random.Generator, step: int) -> ExpertSt
     )
 
 
-# ---------------------------------------------------------------------- start ropes
-def sample_start_rope(
-    rng: np.random.Generator,
-    bend_amplitude: float = 0.03,
-    n_nodes: int = 41,
-    length: float = 1.0,
-    height: float = 0.01,
-    max_rotation: float = math.pi,
-    max_translation: float = 0.15,
-) -> np.ndarray:
-    """A gently curved rope on the table (n_nodes, 3), arc length ``length``.
-
-    y(x) = sum_{k=1..3} a_k / k sin(k pi u + phi_k), u in [0, 1], a_k ~ U(-amp, amp),
-    phi_k ~ U(0, 2 pi); then a rotation by U(-max_rotation, max_rotation) about z and a translation
-    by U(-max_translation, max_translation) in x and y.
-    """
-    if bend_amplitude < 0 or n_nodes < 3 or length <= 0:
-        raise InvalidInputError("need bend_amplitude >= 0, n_nodes >= 3 and length > 0")
-    a_k = rng.uniform(-bend_amplitude, bend_amplitude, size=3)
-    phi_k = rng.uniform(0.0, 2 * math.pi, size=3)
-    u = np.linspace(0.0, 1.0, 401)
-    y = sum(a_k[k] / (k + 1) * np.sin((k + 1) * math.pi * u + phi_k[k]) for k in range(3))
-    y = y - y.mean()
-    xy = np.stack([u - 0.5, y], axis=1)
-    arc = np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()
-    xy *= length / arc  # exact arc length (uniform scaling keeps the shape)
-    theta = rng.uniform(-max_rotation, max_rotation)
-    rot = np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
-    shift = rng.uniform(-max_translation, max_translation, size=2)
-    xy = xy @ rot.T + shift
-    nodes = np.column_stack([xy, np.full(len(xy), height)])
-    return resample_by_arc_length(nodes, n_nodes)
-
-
-# ---------------------------------------------------------------------- geometry helpers
-def _arc(nodes_k3: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
-
-
-def _point_at(nodes_k3: np.ndarray, s: float) -> np.ndarray:
-    """Point at arc length s along the polyline (clamped to the ends)."""
-    arc = _arc(nodes_k3)
-    return np.array([np.interp(s, arc, nodes_k3[:, d]) for d in range(3)])
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    if n < 1e-9:
-        raise InvalidInputError("degenerate direction in the observed rope")
-    return v / n
-
-
-def _perp(v_2: np.ndarray) -> np.ndarray:
-    return np.array([-v_2[1], v_2[0]])
-
-
-def _end_grasp_point(nodes_k3: np.ndarray, offset: float) -> np.ndarray:
-    """Point ``offset`` metres from end B's tip along the rope, at link-centre height."""
-    total = _arc(nodes_k3)[-1]
-    return _point_at(nodes_k3, total - offset)
-
-
 # ---------------------------------------------------------------------- the three steps
 @dataclass(frozen=True)
 class LoopFrame:
@@ -225,9 +173,9 @@ class LoopFrame:
 def plan_loop(nodes_k3: np.ndarray, style: ExpertStyle) -> GripperTrajectory:
     """Step 1: lift end B high above the loop start and lay a loop like a pen."""
     s0 = style.loop_start
-    origin = _point_at(nodes_k3, s0)[:2]
-    ex = _unit(origin - _point_at(nodes_k3, s0 - 0.20)[:2])
-    ey = style.chirality * _perp(ex)
+    origin = point_at(nodes_k3, s0)[:2]
+    ex = unit(origin - point_at(nodes_k3, s0 - 0.20)[:2])
+    ey = style.chirality * perp(ex)
 
     def world(local_n2: np.ndarray) -> np.ndarray:
         return origin + local_n2[:, :1] * ex + local_n2[:, 1:2] * ey
@@ -239,19 +187,9 @@ def plan_loop(nodes_k3: np.ndarray, style: ExpertStyle) -> GripperTrajectory:
     cx = centre[0] - r  # x of the descending leg that crosses the standing part
     tail = np.array([[cx, -style.tail_drop], [cx + style.tail_run, -style.tail_drop]])
     path = world(np.vstack([[0.0, 0.0], loop, tail]))
-    legs = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    frac = np.concatenate([[0.0], np.cumsum(legs)]) / legs.sum()
-    bottom = 0.02
-    path_z = LAY_HEIGHT + (bottom - LAY_HEIGHT) * frac
-    laying = np.column_stack([path, path_z])
-    pick = _end_grasp_point(nodes_k3, style.end_grasp)
-    back = _point_at(nodes_k3, _arc(nodes_k3)[-1] - style.end_grasp - 0.04)
-    lift = np.array([back[0], back[1], 0.10])
-    points = np.vstack([pick, lift, laying, laying[-1:]])
-    closed = np.ones(points.shape[0], dtype=bool)
-    closed[-1] = False
-    speeds = np.full(points.shape[0], style.lay_speed)
-    return single_gripper_trajectory(points, closed, speeds)
+    return pen_lay(
+        nodes_k3, RopeEnd.B, path, LAY_HEIGHT, grasp=style.end_grasp, speed=style.lay_speed
+    )
 
 
 def loop_frame(nodes_k3: np.ndarray) -> LoopFrame | None:
@@ -262,14 +200,14 @@ def loop_frame(nodes_k3: np.ndarray) -> LoopFrame | None:
         return None
     first, second = float(i[0] + t[0]), float(j[0] + s[0])
     tip = xy[-1]
-    arc = _arc(nodes_k3)
-    base = _point_at(nodes_k3, arc[-1] - 0.08)[:2]
-    along = _unit(tip - base)
+    arc = arc_lengths(nodes_k3)
+    base = point_at(nodes_k3, arc[-1] - 0.08)[:2]
+    along = unit(tip - base)
     lo, hi = math.ceil(first), math.floor(second)
     if hi - lo < 3:
         return None
     centre = xy[lo : hi + 1].mean(axis=0)
-    normal = _perp(along)
+    normal = perp(along)
     if float(np.dot(centre - tip, normal)) < 0:
         normal = -normal
     return LoopFrame(tip, along, normal, (lo, hi))
@@ -280,25 +218,10 @@ def plan_over_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -
     lo, hi = frame.loop_nodes
     mid = (lo + hi) // 2
     side = nodes_k3[lo : mid + 1]  # the loop's earlier half, in rope order
-    rel = side[:, :2] - frame.tail_end_2
-    u = rel @ frame.along_2  # along the tail
-    v = rel @ frame.normal_2  # towards the loop
     target = style.grasp_gx
-    above = v > MIN_PICK_HEIGHT
-    best = None
-    for a in range(len(side) - 1):
-        if not (above[a] and above[a + 1]) or u[a] == u[a + 1]:
-            continue
-        if (u[a] - target) * (u[a + 1] - target) <= 0:
-            w = (target - u[a]) / (u[a + 1] - u[a])
-            vv = v[a] + w * (v[a + 1] - v[a])
-            if best is None or vv < best[0]:
-                best = (vv, side[a] + w * (side[a + 1] - side[a]))
-    if best is not None:
-        pick = best[1]
-    else:  # the loop ends short of the target: take its farthest point along the tail
-        cand = np.where(above, u, -np.inf)
-        pick = side[int(np.argmax(cand))]
+    pick = pick_beyond_tip(
+        side, frame.tail_end_2, frame.along_2, frame.normal_2, target, MIN_PICK_HEIGHT
+    )
     # The drag target is fixed relative to the tail end: the loop's later arm must come back
     # up beyond the tail tip, or both arms of the dragged side cross the tail.
     place = frame.tail_end_2 + target * frame.along_2 - style.drag_dy * frame.normal_2
@@ -307,7 +230,7 @@ def plan_over_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -
 
 def plan_pull_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -> GripperTrajectory:
     """Step 3: pick the tail near its tip and pull it out along the tail, away from the loop."""
-    pick = _end_grasp_point(nodes_k3, style.end_grasp)
+    pick = end_grasp_point(nodes_k3, RopeEnd.B, style.end_grasp)
     place = pick[:2] + style.pull_dx * frame.along_2 - style.pull_dy * frame.normal_2
     return pick_place(pick, style.lift3, place, 0.02, style.speed)
 

@@ -18,38 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.world.trajectory import GripperTrajectory, down_rotation
-
-PARK_LEFT = np.array([-0.7, 0.4, 0.3])  # where the idle left gripper waits, far from the rope
-
-
-def single_gripper_trajectory(
-    points_t3: np.ndarray, closed_t: np.ndarray, speeds_t: np.ndarray
-) -> GripperTrajectory:
-    """Trajectory for the right gripper through `points`; leg t (ending at t) at speeds_t[t]."""
-    points_t3 = np.asarray(points_t3, dtype=float)
-    legs = np.linalg.norm(np.diff(points_t3, axis=0), axis=1)
-    times_t = np.concatenate([[0.0], np.cumsum(legs / np.asarray(speeds_t, dtype=float)[1:])])
-    n_t = points_t3.shape[0]
-    pos_gt3 = np.stack([np.broadcast_to(PARK_LEFT, (n_t, 3)), points_t3])
-    closed_gt = np.stack([np.zeros(n_t, dtype=bool), np.asarray(closed_t, dtype=bool)])
-    rot_gt33 = np.broadcast_to(down_rotation(), (2, n_t, 3, 3))
-    return GripperTrajectory(times_t, pos_gt3, rot_gt33, closed_gt)
-
-
-def pick_place(
-    pick_3: np.ndarray, lift: float, place_xy: np.ndarray, place_z: float, speed: float
-) -> GripperTrajectory:
-    """Pick at `pick_3`, rise by `lift`, move level to above `place_xy`, lower, release."""
-    pick_3 = np.asarray(pick_3, dtype=float)
-    up = pick_3 + np.array([0.0, 0.0, lift])
-    over = np.array([place_xy[0], place_xy[1], up[2]])
-    down = np.array([place_xy[0], place_xy[1], place_z])
-    points = np.stack([pick_3, up, over, down, down])
-    closed = np.array([True, True, True, True, False])
-    # Lowering at half speed lets the rope touch down without bouncing.
-    speeds = np.array([0.0, speed / 2, speed, speed / 2, speed])
-    return single_gripper_trajectory(points, closed, speeds)
+from knotlab.core.tasks.expert_moves import pick_place, single_gripper_trajectory
+from knotlab.core.world.trajectory import GripperTrajectory
 
 
 def overhand_sequence(

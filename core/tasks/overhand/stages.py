@@ -14,7 +14,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from knotlab.core.world.knot import analyse_knot
+from knotlab.core.world.knot import analyse_knot, canonical_code
 
 
 class Stage(IntEnum):
@@ -32,23 +32,6 @@ class Stage(IntEnum):
 
 
 STAGE_NAMES: tuple[str, ...] = tuple(s.label for s in Stage)
-
-
-def _relabel(tokens: list[str]) -> str:
-    labels: dict[str, int] = {}
-    out = []
-    for tok in tokens:
-        labels.setdefault(tok[1:], len(labels))
-        out.append(f"{tok[0]}{labels[tok[1:]]}")
-    return " ".join(out)
-
-
-def canonical_code(code: str) -> str:
-    """Direction-free form of a crossing code: the smaller of the code and its reversal."""
-    tokens = code.split()
-    if not tokens:
-        return ""
-    return min(_relabel(tokens), _relabel(tokens[::-1]))
 
 
 _STAGE_BY_CODE = {
