@@ -16,6 +16,7 @@ from knotlab.app.options import (
     check_output,
     integer,
     number,
+    task_of,
 )
 from knotlab.core.world.observation import DEFAULT_OBSERVATION, ObservationModel
 
@@ -101,6 +102,7 @@ def run_generate(args: argparse.Namespace) -> int:
             seed=args.seed,
             bend_amplitude=args.bend,
             observation=ObservationModel.parse(args.observation),
+            task=task_of(args),
         ),
         workers=args.workers,
         progress=not args.no_progress,

@@ -18,6 +18,7 @@ from knotlab.app.options import (
     load_library,
     number,
     resolve_level,
+    task_of,
 )
 
 
@@ -159,6 +160,7 @@ def run_generate(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             extra_metadata=extra,
+            task=task_of(args),
         )
         path = ts.save(out_dir / f"tasks_{level}_{split}.npz")
         print(

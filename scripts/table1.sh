@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Reproduce Table I end to end, resumably: oracle labels -> model -> benchmark.
 # Every stage skips work already done (labels in the DB, outcomes in results/), so rerunning
-# after an interruption continues where it stopped. Usage: scripts/table1.sh [LEVEL] [N_TRAIN]
+# after an interruption continues where it stopped.
+# Usage: scripts/table1.sh [--task NAME] [LEVEL] [N_TRAIN]
+# --task (default overhand) runs another registered task's pipeline on its shipped library and
+# task sets; its files go to results/NAME/ (the overhand knot's stay where they always were).
 # Every policy runs on all 500 test tasks of each level (the committed, full-size Table I; the
 # committed outcomes are resumed, so a clone reruns none of them). Its step 3 from scratch,
 # projected from 20-39 sampled tasks per level on a 2-core AVX-512 EPYC with today's code: ~5.0
@@ -13,30 +16,40 @@
 # are told to with --force (their identity is still checked: another run's results are refused).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+task=overhand
+if [ "${1:-}" = --task ]; then
+  task=${2:?"--task needs a task name"}
+  shift 2
+fi
 level=${1:-main}
 n_train=${2:-300}
 first=${FIRST:-500}
 bin=.venv/bin
-db="sqlite:///results/labels_${level}.db"
-mkdir -p results
+out=results
+if [ "$task" != overhand ]; then
+  out="results/$task"
+fi
+t=(--task "$task")
+db="sqlite:///${out}/labels_${level}.db"
+mkdir -p "$out"
 export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 # 1. Oracle labels for the training starts (resumable: labelled tasks are skipped). A clone has
 #    the committed labels but no database: they are imported first (an import then export gives
 #    back the same bytes), so a clone relabels nothing and leaves the committed file as it is.
-labels="results/labels_oracle_${level}.jsonl"
-if [ ! -e "results/labels_${level}.db" ] && [ -e "$labels" ]; then
+labels="${out}/labels_oracle_${level}.jsonl"
+if [ ! -e "${out}/labels_${level}.db" ] && [ -e "$labels" ]; then
   $bin/knotlab labels import "$labels" --db "$db"
 fi
-$bin/knotlab label --oracle --split train --level "$level" --tasks "$n_train" --db "$db"
+$bin/knotlab label --oracle "${t[@]}" --split train --level "$level" --tasks "$n_train" --db "$db"
 $bin/knotlab labels export --format jsonl --db "$db" --out "$labels" --force
 
 # 1b. Try the 5 cheapest candidates of every labelled state once in simulation (resumable): the
 #     training then knows which alternatives to the oracle's demo advance as well (the lever
 #     of docs/results.md; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with,
 #     NN 48.0 %).
-$bin/knotlab labels tries --labels "$labels" --top 5 \
-  --out "results/tries_${level}.jsonl" --force
+$bin/knotlab labels tries "${t[@]}" --labels "$labels" --top 5 \
+  --out "${out}/tries_${level}.jsonl" --force
 # STOP=labels: only the labels and tries (e.g. `STOP=labels scripts/table1.sh hard`, the hard
 # level's labels for bench/level_models.py).
 if [ "${STOP:-}" = labels ]; then
@@ -49,11 +62,11 @@ fi
 #    C in {1, 10, 100, 1000} x D in {1, 10, 100}) and valued expert states above dead ends in
 #    0.949 of pairs (0.683 without landmarks at the same top-1). To redo the sweep:
 #    `knotlab train --labels ... --C 1,10,100,1000 --D 1,10 --landmarks 50,20` (and 0,0).
-if [ ! -e "results/model_${level}.npz" ]; then
-  $bin/knotlab train --labels "$labels" \
-    --tries "results/tries_${level}.jsonl" \
-    --C 1000 --D 10 --landmarks 50,20 --out "results/model_${level}.npz" --json \
-    | tee "results/train_${level}.txt"
+if [ ! -e "${out}/model_${level}.npz" ]; then
+  $bin/knotlab train "${t[@]}" --labels "$labels" \
+    --tries "${out}/tries_${level}.jsonl" \
+    --C 1000 --D 10 --landmarks 50,20 --out "${out}/model_${level}.npz" --json \
+    | tee "${out}/train_${level}.txt"
 fi
 
 # 3. Table I on the test sets, in priority order (each call resumes the same directory):
@@ -63,18 +76,18 @@ fi
 #    policies on one worker, an execution simulated once for all of them): the same outcomes,
 #    ~30 % less time (bench/sharing.py), no priority order; the recorded decision times are
 #    then those of policies that found part of their simulations done.
-model="results/model_${level}.npz"
+model="${out}/model_${level}.npz"
 share=()
 if [ -z "${SHARE:-}" ]; then
   for lv in main hard; do
-    $bin/knotlab bench --policies nn,greedy,la2x5 --tasks 500 --level "$lv" --model "$model" \
-      --out-dir "results/table1_${lv}" --force
+    $bin/knotlab bench "${t[@]}" --policies nn,greedy,la2x5 --tasks 500 --level "$lv" \
+      --model "$model" --out-dir "${out}/table1_${lv}" --force
   done
 else
   share=(--share-simulations)
 fi
 for lv in main hard; do
-  $bin/knotlab bench --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 \
+  $bin/knotlab bench "${t[@]}" --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 \
     --first "oracle=${first},la1x10=${first}" "${share[@]}" \
-    --level "$lv" --model "$model" --out-dir "results/table1_${lv}" --force
+    --level "$lv" --model "$model" --out-dir "${out}/table1_${lv}" --force
 done

@@ -334,6 +334,7 @@ class LabelPanels:
         step = f"step **{view.rollout_step + 1}** of {view.step_limit}"
         lines = [
             f"**{view.labeller}** · {where} · {step}",
+            *([f"goal: {view.goal}"] if view.goal else []),
             f"ranked by: {view.model}",
             f"*{phase.value}*" + (f": {view.message}" if view.message else ""),
         ]

@@ -172,6 +172,7 @@ class SessionView:
     first_step: int = 0  # the rollout step this episode's first state is at (model mode)
     model_mode: bool = False
     model_failed: int | None = None  # the rank of the model's choice that failed in this state
+    goal: str = ""  # the task's goal in words (e.g. "tie an overhand knot ...")
 
     @property
     def rollout_step(self) -> int:
@@ -262,6 +263,7 @@ class LabelSession:
                 first_step=self.first_step,
                 model_mode=self.model_mode,
                 model_failed=self.model_failed,
+                goal=self.res.task.description,
             )
 
     def candidate(self, rank: int) -> Candidate:

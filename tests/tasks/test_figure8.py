@@ -82,3 +82,25 @@ def test_the_expert_ties_it_in_four_steps_and_each_step_replays_bit_for_bit() ->
         assert TASK.is_success(run.steps[-1].post_nodes_k3)
         again = TASK.demonstrate(world, settings, seed=0)
     assert np.array_equal(again.steps[-1].post_nodes_k3, run.steps[-1].post_nodes_k3)
+
+
+def test_the_command_line_generates_a_figure8_library_and_start_set(tmp_path, capsys) -> None:
+    from knotlab.app import cli
+    from knotlab.core.demos.library import DemoLibrary
+    from knotlab.core.demos.tasks import TaskSet
+
+    lib_path = tmp_path / "f8.npz"
+    base = ["--task", "figure8", "--workers", "1", "--no-progress"]
+    assert cli.main(["demos", "generate", "--starts", "1", "--out", str(lib_path), *base]) == 0
+    library = DemoLibrary.load(lib_path)
+    assert library.task == "figure8"
+    assert sorted(s.step_index for s in library.segments) == [0, 1, 2, 3]
+    assert TASK.is_success(library.segments[-1].post_nodes_k3)
+    argv = ["tasks", "generate", "--train", "2", "--test", "0", "--seed", "3", "--level", "main"]
+    assert cli.main([*argv, "--library", str(lib_path), "--out-dir", str(tmp_path), *base]) == 0
+    tasks = TaskSet.load(tmp_path / "tasks_main_train.npz")
+    assert tasks.task == "figure8" and len(tasks) == 2
+    # The overhand knot's commands refuse the figure-eight's files (one line, exit 2).
+    assert cli.main(["tasks", "generate", "--seed", "3", "--library", str(lib_path),
+                     "--out-dir", str(tmp_path / "o"), "--workers", "1"]) == 2  # fmt: skip
+    assert "task 'figure8'" in capsys.readouterr().err

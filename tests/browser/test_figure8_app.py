@@ -1,0 +1,52 @@
+"""The app serving the figure-eight task (`knotlab app --task figure8`): a labeller labels its
+ropes with the keyboard, Inspect explains a choice, Playback replays the stored episode; the
+store holds the figure-eight's labels only."""
+
+from __future__ import annotations
+
+import pytest
+
+from knotlab.app.web.session import Phase
+from knotlab.core.tasks import get_task
+from knotlab.labeling_db.errors import TaskMismatchError
+from tests.browser.conftest import keep_shot, start_app, wait_until
+
+
+@pytest.fixture(scope="module")
+def app(db_url):
+    """The app on the figure-eight's shipped library and start sets (no model: NN ranks)."""
+    a = start_app(db_url, task="figure8")
+    yield a
+    a.stop()
+
+
+def test_a_keyboard_labeller_labels_figure8_ropes_and_the_store_is_the_figure8s(tabs, app):
+    task = get_task("figure8")
+    tab = tabs("ivy", submit="enter")  # keyboard only from here on
+    view = tab.session.view()
+    assert view.step_limit == task.step_limit
+    body = tab.page.inner_text("body")
+    assert f"goal: {task.description}" in body  # the panel says which knot is being tied
+    first = view.task_id
+    keys = {"try": "Enter", "accept": "y", "reject": "n"}
+    labelled = 0
+    for _ in range(task.step_limit + 4):
+        if tab.session.view().task_id != first:
+            break
+        tab.page.keyboard.press(keys["try"])
+        wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 90, "the try")
+        result = tab.session.view().last_try
+        assert result.stage_reached in task.stage_names  # the figure-eight's own stages
+        if result.acceptable:
+            tab.page.keyboard.press(keys["accept"])
+            labelled += 1
+        else:
+            tab.page.keyboard.press(keys["reject"])
+        wait_until(lambda: tab.session.view().phase is not Phase.JUDGING, 30, "the judgement")
+    keep_shot(tab.page, "figure8_labelling")
+    assert labelled >= 1
+    assert app.store.check_task("figure8") is None  # the store is the figure-eight's
+    labels = app.store.labels(labeller="ivy")
+    assert len(labels) == labelled and labels[0].task_id == first
+    with pytest.raises(TaskMismatchError, match="figure8"):
+        app.store.check_task("overhand")
