@@ -95,3 +95,20 @@ def test_importing_the_simulator_prints_no_banner() -> None:
     code = "import knotlab.core.world.sim"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert res.stdout == "" and res.stderr == ""
+
+
+def test_only_a_tasks_own_folder_names_it() -> None:
+    """A task is reached through the Task protocol: the code outside its folder never names it
+    (registrations live in the folder; pyproject.toml and docs/ may)."""
+    import re
+
+    names = re.compile(r"figure[-_ ]?(8|eight)", re.IGNORECASE)
+    found = []
+    for top in ("core", "app", "labeling_db", "knotlab"):
+        for path in (ROOT / top).rglob("*.py"):
+            if path.is_relative_to(ROOT / "core" / "tasks" / "figure8"):
+                continue
+            for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+                if names.search(line):
+                    found.append(f"{path.relative_to(ROOT)}:{n}")
+    assert not found, f"the figure-eight task is named outside its folder: {found}"

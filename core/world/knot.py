@@ -9,7 +9,7 @@ Method (docs/reference/knot_and_stages.md, "Knot test"):
 3. Build the Alexander (Fox) matrix of the diagram: for crossing c with over-arc k and under-arcs
    i (incoming) and j (outgoing), row c has 1 - t at k and (t, -1) at (i, j) for one crossing sign,
    (-1, t) for the other. Delete one row and column: the minor's determinant is +-t^m Delta(t).
-   |Delta(-1)| is the knot determinant (1 unknot, 3 trefoil, 5 figure-eight) and Delta(2) with
+   |Delta(-1)| is the knot determinant (1 unknot, 3 trefoil; docs/tasks.md) and Delta(2) with
    powers of two divided out is 3 for the trefoil (Delta = t^2 - t + 1).
 4. It is an overhand knot only if BOTH closures give the trefoil, so the answer does not depend
    on how the open ends are closed.
@@ -219,7 +219,7 @@ def alexander_polynomial(rope_nodes_k3: np.ndarray, above: bool = True) -> tuple
 
     The minor's determinant is a polynomial of degree below the crossing count n; it is
     evaluated exactly at n integers near 0 and interpolated (exact rationals). Unknot (1,),
-    trefoil (1, -1, 1), figure-eight (1, -3, 1).
+    trefoil (1, -1, 1); the tasks' own goals are in their folders (docs/tasks.md).
     """
     nodes = as_nodes(rope_nodes_k3, min_nodes=2)
     cr = _crossings(_closed(nodes, above), cyclic=True)
