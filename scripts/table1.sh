@@ -48,8 +48,13 @@ $bin/knotlab labels export --format jsonl --db "$db" --out "$labels" --force
 #     training then knows which alternatives to the oracle's demo advance as well (the lever
 #     of docs/results.md; 5-fold greedy on the training starts: 61.7 % without, 67.0 % with,
 #     NN 48.0 %).
-$bin/knotlab labels tries "${t[@]}" --labels "$labels" --top 5 \
-  --out "${out}/tries_${level}.jsonl" --force
+# TRIES=0 skips it (and trains on the labels alone: the figure-eight's committed model).
+tries=()
+if [ "${TRIES:-5}" != 0 ]; then
+  $bin/knotlab labels tries "${t[@]}" --labels "$labels" --top "${TRIES:-5}" \
+    --out "${out}/tries_${level}.jsonl" --force
+  tries=(--tries "${out}/tries_${level}.jsonl")
+fi
 # STOP=labels: only the labels and tries (e.g. `STOP=labels scripts/table1.sh hard`, the hard
 # level's labels for bench/level_models.py).
 if [ "${STOP:-}" = labels ]; then
@@ -62,10 +67,11 @@ fi
 #    C in {1, 10, 100, 1000} x D in {1, 10, 100}) and valued expert states above dead ends in
 #    0.949 of pairs (0.683 without landmarks at the same top-1). To redo the sweep:
 #    `knotlab train --labels ... --C 1,10,100,1000 --D 1,10 --landmarks 50,20` (and 0,0).
+#    C and D may be set (comma lists are swept on the validation split): the figure-eight's
+#    model is `TRIES=0 C=10,100,1000 D=1,10 scripts/table1.sh --task figure8 main`.
 if [ ! -e "${out}/model_${level}.npz" ]; then
-  $bin/knotlab train "${t[@]}" --labels "$labels" \
-    --tries "${out}/tries_${level}.jsonl" \
-    --C 1000 --D 10 --landmarks 50,20 --out "${out}/model_${level}.npz" --json \
+  $bin/knotlab train "${t[@]}" --labels "$labels" "${tries[@]}" \
+    --C "${C:-1000}" --D "${D:-10}" --landmarks 50,20 --out "${out}/model_${level}.npz" --json \
     | tee "${out}/train_${level}.txt"
 fi
 
