@@ -37,13 +37,11 @@ Shape suffixes: k = rope nodes, 2/3 = xy/xyz.
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.seeds import generator
 from knotlab.core.tasks.expert_moves import (
     RopeEnd,
     end_grasp_point,
@@ -54,6 +52,7 @@ from knotlab.core.tasks.expert_moves import (
     point_at,
     unit,
 )
+from knotlab.core.tasks.expert_runner import DemoRun, ScriptedExpert, StepRecord, Verdict
 from knotlab.core.tasks.figure8.stages import STAGE_CODES, is_figure_eight_analysis
 from knotlab.core.world.knot import analyse_knot, canonical_code
 from knotlab.core.world.protocol import World
@@ -283,34 +282,6 @@ def plan_pull_tail(
 
 
 # ---------------------------------------------------------------------- running a demo
-@dataclass(frozen=True, eq=False)
-class StepRecord:
-    """One executed (accepted) step: the state it started from and what it did."""
-
-    step_index: int
-    pre_nodes_k3: np.ndarray
-    trajectory: GripperTrajectory
-    post_nodes_k3: np.ndarray
-    code: str  # Gauss code after the step
-    stage_ok: bool
-    attempts: int
-    style: Figure8Style
-
-
-@dataclass(frozen=True, eq=False)
-class DemoRun:
-    """The outcome of one expert demonstration from a start rope."""
-
-    start_nodes_k3: np.ndarray
-    style: Figure8Style
-    steps: list[StepRecord] = field(default_factory=list)
-    knotted: bool = False
-    failed_step: int | None = None  # step whose stage stayed wrong after all retries
-    wall_time: float = 0.0
-    restarts: int = 0  # new loops laid after a failed later step
-    failures_by_step: tuple[int, ...] = (0, 0, 0, 0)  # rejected tries of each step
-
-
 def _plan(
     step: int, nodes_k3: np.ndarray, style: Figure8Style, frame: TailFrame | None
 ) -> GripperTrajectory:
@@ -325,32 +296,21 @@ def _plan(
     return plan_pull_tail(nodes_k3, style, frame)
 
 
-def _try_step(
-    world: World, step: int, pre: np.ndarray, style: Figure8Style, frame: TailFrame | None
-) -> tuple[GripperTrajectory, np.ndarray, str, TailFrame | None] | None:
-    """Execute one planned step from ``reset(pre)``; (traj, post, code, frame) if its stage
-    is the expected one, else None."""
-    world.reset(pre)
-    try:
-        traj = _plan(step, pre, style, frame)
-    except InvalidInputError:
-        return None
-    result = world.execute(traj)
-    post = world.rope_nodes()
-    if not result.ok or not np.all(np.isfinite(post)):
-        return None
+def _judge(step: int, post: np.ndarray, frame: TailFrame | None) -> Verdict[TailFrame]:
+    """The expected stage's code after steps 1-3, the figure-eight after step 4; after the wrap
+    the tail is measured."""
     analysis = analyse_knot(post)
     if step == N_STEPS - 1:
         good = is_figure_eight_analysis(post, analysis)
     else:
         good = canonical_code(analysis.gauss_code) == _CANONICAL[step]
-    if not good:
-        return None
-    if step == 1:
+    if step == 1 and good:
         frame = tail_frame(post)
-        if frame is None:
-            return None
-    return traj, post, analysis.gauss_code, frame
+        good = frame is not None
+    return Verdict(analysis.gauss_code, good, frame)
+
+
+EXPERT = ScriptedExpert(N_STEPS, _plan, _judge, _jitter, rng_stream=8)
 
 
 def run_expert(
@@ -360,50 +320,17 @@ def run_expert(
     seed: int = 0,
     max_attempts: int = 3,
     max_restarts: int = 8,
-) -> DemoRun:
-    """Tie a figure-eight knot from ``start_nodes_k3``; every step starts from
-    ``world.reset(pre_nodes)``, so each recorded step replays bit for bit (as the overhand
-    expert's). Jitters of retried steps and new loops are seeded by ``seed``."""
-    wall0 = time.perf_counter()
-    rng = generator(seed, 8)
-    world.reset(start_nodes_k3)
-    start = world.rope_nodes()
-    failed: int | None = None
-    records: list[StepRecord] = []
-    fails_by_step = [0] * N_STEPS
-    restart = 0
-    for restart in range(max_restarts):
-        loop_style = style if restart == 0 else _jitter(style, rng, 0)
-        records = []
-        frame: TailFrame | None = None
-        nodes = start
-        failed = None
-        for step in range(N_STEPS):
-            accepted = None
-            for attempt in range(1, max_attempts + 1):
-                step_style = loop_style if attempt == 1 else _jitter(loop_style, rng, step)
-                out = _try_step(world, step, nodes, step_style, frame)
-                if out is not None:
-                    traj, post, code, frame = out
-                    accepted = StepRecord(step, nodes, traj, post, code, True, attempt, step_style)
-                    break
-                fails_by_step[step] += 1
-            if accepted is None:
-                failed = step
-                break
-            records.append(accepted)
-            nodes = accepted.post_nodes_k3
-        if failed is None:
-            break
-    return DemoRun(
-        start_nodes_k3=np.asarray(start_nodes_k3, dtype=float),
-        style=style,
-        steps=records,
-        knotted=failed is None,
-        failed_step=failed,
-        wall_time=time.perf_counter() - wall0,
-        restarts=restart,
-        failures_by_step=tuple(fails_by_step),
+) -> DemoRun[Figure8Style]:
+    """Tie a figure-eight knot from ``start_nodes_k3`` (`expert_runner`: every step starts from
+    ``world.reset(pre_nodes)``, so each recorded step replays bit for bit; a step is tried up to
+    ``max_attempts`` times, then a new loop, at most ``max_restarts``). Seeded by ``seed``."""
+    return EXPERT.run(
+        world,
+        start_nodes_k3,
+        style,
+        seed=seed,
+        max_attempts=max_attempts,
+        max_restarts=max_restarts,
     )
 
 

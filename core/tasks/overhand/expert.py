@@ -42,13 +42,11 @@ Shape suffixes: k = rope nodes, t = waypoints, 2/3 = xy/xyz.
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.seeds import generator
 from knotlab.core.tasks.expert_moves import (
     RopeEnd,
     arc_lengths,
@@ -60,6 +58,7 @@ from knotlab.core.tasks.expert_moves import (
     point_at,
     unit,
 )
+from knotlab.core.tasks.expert_runner import DemoRun, ScriptedExpert, StepRecord, Verdict
 from knotlab.core.tasks.overhand.stages import Stage, stage_of_code
 from knotlab.core.world.knot import analyse_knot
 from knotlab.core.world.protocol import World
@@ -236,34 +235,6 @@ def plan_pull_tail(nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame) -
 
 
 # ---------------------------------------------------------------------- running a demo
-@dataclass(frozen=True, eq=False)
-class StepRecord:
-    """One executed (accepted) step: the state it started from and what it did."""
-
-    step_index: int
-    pre_nodes_k3: np.ndarray
-    trajectory: GripperTrajectory
-    post_nodes_k3: np.ndarray
-    code: str  # Gauss code after the step
-    stage_ok: bool
-    attempts: int
-    style: ExpertStyle
-
-
-@dataclass(frozen=True, eq=False)
-class DemoRun:
-    """The outcome of one expert demonstration from a start rope."""
-
-    start_nodes_k3: np.ndarray
-    style: ExpertStyle
-    steps: list[StepRecord] = field(default_factory=list)
-    knotted: bool = False
-    failed_step: int | None = None  # step whose stage stayed wrong after all retries
-    wall_time: float = 0.0
-    restarts: int = 0  # new loops laid after a failed later step
-    failures_by_step: tuple[int, ...] = (0, 0, 0)  # rejected tries of each step
-
-
 def _plan(
     step: int, nodes_k3: np.ndarray, style: ExpertStyle, frame: LoopFrame | None
 ) -> GripperTrajectory:
@@ -276,30 +247,20 @@ def _plan(
     return plan_pull_tail(nodes_k3, style, frame)
 
 
-def _try_step(
-    world: World, step: int, pre: np.ndarray, style: ExpertStyle, frame: LoopFrame | None
-) -> tuple[GripperTrajectory, np.ndarray, str, bool, LoopFrame | None] | None:
-    """Execute one planned step from ``reset(pre)``; (post, code, ok, frame) or None."""
-    world.reset(pre)
-    try:
-        traj = _plan(step, pre, style, frame)
-    except InvalidInputError:
-        return None
-    result = world.execute(traj)
-    post = world.rope_nodes()
-    if not result.ok or not np.all(np.isfinite(post)):
-        return None
+def _judge(step: int, post: np.ndarray, frame: LoopFrame | None) -> Verdict[LoopFrame]:
+    """The same canonical stage test as the oracle and the labeller (a code read from the other
+    end of the rope is the same state); after step 1 the loop is measured."""
     analysis = analyse_knot(post)
-    final = step == N_STEPS - 1
-    # The same canonical stage test as the oracle and the labeller (a code read from the other
-    # end of the rope is the same state).
     stage = stage_of_code(analysis.gauss_code, analysis.is_overhand)
-    good = stage is Stage.KNOT if final else stage == Stage(step + 1)
-    new_frame = frame
+    good = stage is Stage.KNOT if step == N_STEPS - 1 else stage == Stage(step + 1)
     if step == 0 and good:
-        new_frame = loop_frame(post)
-        good = new_frame is not None
-    return traj, post, analysis.gauss_code, good, new_frame
+        frame = loop_frame(post)
+        good = frame is not None
+    return Verdict(analysis.gauss_code, good, frame)
+
+
+# Step 1 is tried once per loop: a loop that fails is laid again as a new start.
+EXPERT = ScriptedExpert(N_STEPS, _plan, _judge, _jitter, first_step_tries=1, rng_stream=7)
 
 
 def run_expert(
@@ -309,57 +270,28 @@ def run_expert(
     seed: int = 0,
     max_attempts: int = 3,
     max_restarts: int = 8,
-) -> DemoRun:
-    """Tie a knot from ``start_nodes_k3``; every step starts from ``world.reset(pre_nodes)``.
-
-    Resetting from the read-back rope nodes before every step (velocities zero, the rope at rest
-    after the previous step's settle) makes each recorded step exactly replayable:
-    ``world.reset(step.pre_nodes_k3); world.execute(step.trajectory)`` gives ``post_nodes_k3``
-    bit for bit, because the simulator rebuilds its world from that plain state.
-
-    Checks: after each step the crossing code must be the expected stage. Steps 2 and 3 are
-    retried from the same pre-step state with a jittered style (``max_attempts`` tries each);
-    if they still fail the expert starts over from the start rope with a new loop (at most
-    ``max_restarts`` loops), then abandons the demo. Jitters are seeded by ``seed``.
-    """
-    wall0 = time.perf_counter()
-    rng = generator(seed, 7)
-    world.reset(start_nodes_k3)
-    start = world.rope_nodes()
-    failed: int | None = None
-    records: list[StepRecord] = []
-    fails_by_step = [0] * N_STEPS
-    for restart in range(max_restarts):
-        loop_style = style if restart == 0 else _jitter(style, rng, 0)
-        records = []
-        frame: LoopFrame | None = None
-        nodes = start
-        failed = None
-        for step in range(N_STEPS):
-            tries = 1 if step == 0 else max_attempts
-            accepted = None
-            for attempt in range(1, tries + 1):
-                step_style = loop_style if attempt == 1 else _jitter(loop_style, rng, step)
-                out = _try_step(world, step, nodes, step_style, frame)
-                if out is not None and out[3]:
-                    traj, post, code, _, frame = out
-                    accepted = StepRecord(step, nodes, traj, post, code, True, attempt, step_style)
-                    break
-                fails_by_step[step] += 1
-            if accepted is None:
-                failed = step
-                break
-            records.append(accepted)
-            nodes = accepted.post_nodes_k3
-        if failed is None:
-            break
-    return DemoRun(
-        start_nodes_k3=np.asarray(start_nodes_k3, dtype=float),
-        style=style,
-        steps=records,
-        knotted=failed is None,
-        failed_step=failed,
-        wall_time=time.perf_counter() - wall0,
-        restarts=restart,
-        failures_by_step=tuple(fails_by_step),
+) -> DemoRun[ExpertStyle]:
+    """Tie a knot from ``start_nodes_k3`` (`expert_runner`: every step starts from
+    ``world.reset(pre_nodes)`` and replays bit for bit). Steps 2 and 3 are retried from the same
+    pre-step state with a jittered style (``max_attempts`` tries each); then the expert lays a new
+    loop (at most ``max_restarts`` loops). Jitters are seeded by ``seed``."""
+    return EXPERT.run(
+        world,
+        start_nodes_k3,
+        style,
+        seed=seed,
+        max_attempts=max_attempts,
+        max_restarts=max_restarts,
     )
+
+
+__all__ = [
+    "N_STEPS",
+    "STAGE_CODES",
+    "DemoRun",
+    "ExpertStyle",
+    "LoopFrame",
+    "StepRecord",
+    "run_expert",
+    "sample_style",
+]
