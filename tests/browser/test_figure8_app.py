@@ -9,13 +9,22 @@ import pytest
 from knotlab.app.web.session import Phase
 from knotlab.core.tasks import get_task
 from knotlab.labeling_db.errors import TaskMismatchError
-from tests.browser.conftest import start_app, wait_until
+from tests.browser.conftest import SEED_EXECUTIONS, start_app, wait_until
 
 
 @pytest.fixture(scope="module")
-def app(db_url):
-    """The app on the figure-eight's shipped library and start sets (no model: NN ranks)."""
-    a = start_app(db_url, task="figure8")
+def app(db_url, tmp_path_factory, project_root):
+    """The app on the figure-eight's shipped library, start sets and model. Its store is seeded
+    with a few of the model's training executions, not all 298 (as the overhand app's tests)."""
+    from knotlab.app.web import resources
+
+    shipped = project_root / "results" / "figure8" / "labels_oracle_main.jsonl"
+    lines = shipped.read_text(encoding="utf-8").splitlines(keepends=True)
+    seed = tmp_path_factory.mktemp("seed8") / "labels_oracle_main.jsonl"
+    seed.write_text("".join(lines[:1] + lines[-SEED_EXECUTIONS:]), encoding="utf-8")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(resources, "shipped_labels_path", lambda _model, _path: seed)
+        a = start_app(db_url, task="figure8")
     yield a
     a.stop()
 
@@ -25,6 +34,7 @@ def test_a_keyboard_labeller_labels_figure8_ropes_and_the_store_is_the_figure8s(
     tab = tabs("ivy", submit="enter")  # keyboard only from here on
     view = tab.session.view()
     assert view.step_limit == task.step_limit
+    assert "nearest neighbour" not in view.model  # the figure-eight's shipped model ranks
     body = tab.page.inner_text("body")
     assert f"goal: {task.description}" in body  # the panel says which knot is being tied
     first = view.task_id
