@@ -100,6 +100,9 @@ class Task(Protocol):
     stage_names: tuple[str, ...]  # index = stage number
     levels: Mapping[str, PerturbationLevel]
     files: TaskFiles
+    # Published success rates of policies on this task, by policy name (the paper's Table I for
+    # the overhand knot); empty when there are none. Reports draw them beside ours.
+    reference_rates: Mapping[str, float]
 
     def stage(self, nodes_k3: np.ndarray) -> StageReading:
         """The rope's stage (and whether the goal is reached) from its node positions."""

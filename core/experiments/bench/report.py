@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from knotlab.core.atomic import atomic_path
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.tasks import DEFAULT_TASK, get_task
 
 RESULTS_FORMAT = "knotlab-bench-results"
 RESULTS_VERSION = 1
@@ -21,7 +22,8 @@ RESULTS_FILE = "results.json"
 CHART_FILE = "table1.png"
 Z_95 = 1.959963984540054
 # The paper's Table I (success within 5 steps); no oracle row there.
-PAPER_TABLE1: dict[str, float] = {"nn": 0.688, "greedy": 0.856, "la1x10": 0.936, "la2x5": 0.952}
+# The paper's Table I: the overhand knot's reference rates (its task carries them).
+PAPER_TABLE1: dict[str, float] = dict(get_task(DEFAULT_TASK).reference_rates)
 
 
 def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
@@ -38,8 +40,11 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
     return (float(ci.low), float(ci.high))
 
 
-def summarize(policy: str, records: Sequence[dict]) -> dict:
-    """One Table I row: successes, rate, Wilson 95 %, decision time per step, steps, failures."""
+def summarize(
+    policy: str, records: Sequence[dict], reference: Mapping[str, float] | None = None
+) -> dict:
+    """One Table I row: successes, rate, Wilson 95 %, decision time per step, steps, failures;
+    ``reference``: the task's published rates (default: the paper's, the overhand knot's)."""
     n = len(records)
     k = sum(bool(r["success"]) for r in records)
     lo, hi = wilson_interval(k, n)
@@ -53,7 +58,7 @@ def summarize(policy: str, records: Sequence[dict]) -> dict:
         "rate": k / n if n else math.nan,
         "wilson_low": lo,
         "wilson_high": hi,
-        "paper_rate": PAPER_TABLE1.get(policy),
+        "paper_rate": (PAPER_TABLE1 if reference is None else reference).get(policy),
         "mean_decision_s_per_step": float(np.mean(decide)) if decide else math.nan,
         "mean_steps": float(np.mean([r["n_steps"] for r in records])) if n else math.nan,
         "mean_steps_success": (

@@ -268,13 +268,15 @@ def run_bench(
     for _, t, p in wanted_pairs(tasks, policies, first):
         if (p, t.task_id) in finished:
             outcomes[p].append(_without_identity(finished[(p, t.task_id)]))
-    rows = [summarize(p, outcomes[p]) for p in policies]
+    reference = get_task(identity.task).reference_rates
+    rows = [summarize(p, outcomes[p], reference) for p in policies]
     common_rows = None
     if len({r["n"] for r in rows}) > 1:
         n_common = min(r["n"] for r in rows)
         common_ids = {t.task_id for t in tasks[:n_common]}
         common_rows = [
-            summarize(p, [r for r in outcomes[p] if r["task_id"] in common_ids]) for p in policies
+            summarize(p, [r for r in outcomes[p] if r["task_id"] in common_ids], reference)
+            for p in policies
         ]
     wall = time.perf_counter() - t0
     results = {

@@ -44,6 +44,7 @@ class Figure8Task:
     stage_names: tuple[str, ...] = ("other", "loop", "wrapped", "under_arm", "knot")
     levels: Mapping[str, PerturbationLevel] = field(default_factory=lambda: _LEVELS)
     files: TaskFiles = field(default_factory=lambda: TaskFiles("knotlab.core.tasks.figure8"))
+    reference_rates: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
     def stage(self, nodes_k3: np.ndarray) -> StageReading:
         """Stage from the crossing code: other 0, loop 1, wrapped 2, under the arm 3, knot 4."""

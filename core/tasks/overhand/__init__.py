@@ -30,6 +30,9 @@ _LEVELS = MappingProxyType(
     }
 )
 
+# The paper's Table I (success within 5 steps): what reports show beside ours.
+_PAPER_TABLE1 = MappingProxyType({"nn": 0.688, "greedy": 0.856, "la1x10": 0.936, "la2x5": 0.952})
+
 
 @register_task("overhand")
 @dataclass(frozen=True)
@@ -43,6 +46,7 @@ class OverhandTask:
     stage_names: tuple[str, ...] = ("other", "loop", "over_tail", "knot")
     levels: Mapping[str, PerturbationLevel] = field(default_factory=lambda: _LEVELS)
     files: TaskFiles = field(default_factory=lambda: TaskFiles("knotlab.core.tasks.overhand"))
+    reference_rates: Mapping[str, float] = field(default_factory=lambda: _PAPER_TABLE1)
 
     def stage(self, nodes_k3: np.ndarray) -> StageReading:
         """Stage from the crossing code: other 0, loop 1, loop over tail 2, knot 3."""
