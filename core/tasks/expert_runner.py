@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -152,4 +152,4 @@ class ScriptedExpert(Generic[StyleT, FrameT]):
         return (traj, post, verdict) if verdict.accepted else None
 
 
-__all__: list[Any] = ["DemoRun", "ScriptedExpert", "StepRecord", "Verdict"]
+__all__ = ["DemoRun", "ScriptedExpert", "StepRecord", "Verdict"]
