@@ -35,8 +35,8 @@ def test_a_keyboard_labeller_labels_figure8_ropes_and_the_store_is_the_figure8s(
     view = tab.session.view()
     assert view.step_limit == task.step_limit
     assert "nearest neighbour" not in view.model  # the figure-eight's shipped model ranks
-    body = tab.page.inner_text("body")
-    assert f"goal: {task.description}" in body  # the panel says which knot is being tied
+    goal = f"goal: {task.description}"  # the panel says which knot is being tied
+    wait_until(lambda: goal in tab.page.inner_text("body"), 30, "the goal in the panel")
     first = view.task_id
     keys = {"try": "Enter", "accept": "y", "reject": "n"}
     labelled = 0
