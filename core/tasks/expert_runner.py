@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from knotlab.core.errors import InvalidInputError
 from knotlab.core.seeds import generator
 from knotlab.core.world.protocol import World
 from knotlab.core.world.trajectory import GripperTrajectory
+
+if TYPE_CHECKING:
+    from knotlab.core.demos.generation import GenSettings
 
 StyleT = TypeVar("StyleT")
 FrameT = TypeVar("FrameT")
@@ -152,4 +155,34 @@ class ScriptedExpert(Generic[StyleT, FrameT]):
         return (traj, post, verdict) if verdict.accepted else None
 
 
-__all__ = ["DemoRun", "ScriptedExpert", "StepRecord", "Verdict"]
+def demonstrate_from_seed(
+    world: World,
+    settings: GenSettings,
+    seed: int,
+    *,
+    sample_style: Callable[[np.random.Generator, float], StyleT],
+    run_expert: Callable[..., DemoRun[StyleT]],
+) -> DemoRun[StyleT]:
+    """What every task's ``demonstrate`` does: a gently curved start rope, then an expert style,
+    both drawn from ``seed`` in that order, then the expert with the settings' retries."""
+    from knotlab.core.tasks.expert_moves import sample_start_rope
+
+    rng = np.random.default_rng(seed)
+    start = sample_start_rope(
+        rng,
+        bend_amplitude=settings.bend_amplitude,
+        max_rotation=settings.max_rotation,
+        max_translation=settings.max_translation,
+    )
+    style = sample_style(rng, settings.mirror_prob)
+    return run_expert(
+        world,
+        start,
+        style,
+        seed=seed,
+        max_attempts=settings.max_attempts,
+        max_restarts=settings.max_restarts,
+    )
+
+
+__all__ = ["DemoRun", "ScriptedExpert", "StepRecord", "Verdict", "demonstrate_from_seed"]

@@ -64,24 +64,11 @@ class Figure8Task:
     def demonstrate(self, world: RopeWorld, settings: GenSettings, seed: int) -> DemoRun:
         """A gently curved start rope and an expert style drawn from ``seed``, then the
         scripted 4-step expert (retries and new loops as ``settings`` allow)."""
-        from knotlab.core.tasks.expert_moves import sample_start_rope
+        from knotlab.core.tasks.expert_runner import demonstrate_from_seed
         from knotlab.core.tasks.figure8.expert import run_expert, sample_style
 
-        rng = np.random.default_rng(seed)
-        start = sample_start_rope(
-            rng,
-            bend_amplitude=settings.bend_amplitude,
-            max_rotation=settings.max_rotation,
-            max_translation=settings.max_translation,
-        )
-        style = sample_style(rng, mirror_prob=settings.mirror_prob)
-        return run_expert(
-            world,
-            start,
-            style,
-            seed=seed,
-            max_attempts=settings.max_attempts,
-            max_restarts=settings.max_restarts,
+        return demonstrate_from_seed(
+            world, settings, seed, sample_style=sample_style, run_expert=run_expert
         )
 
     def run_expert(
