@@ -63,3 +63,22 @@ def test_a_keyboard_labeller_labels_figure8_ropes_and_the_store_is_the_figure8s(
     assert app.store.tasks() == {"figure8"}
     with pytest.raises(TaskMismatchError, match="figure8"):
         app.store.check_task("overhand")
+
+
+def test_a_mouse_labeller_labels_a_figure8_rope_to_its_end(tabs, app):
+    task = get_task("figure8")
+    tab = tabs("mo")  # the name by clicking the button; no keys from here on
+    first = tab.session.view().task_id
+    names = {"try": "Try (Enter)", "accept": "Accept (Y)", "reject": "Reject (N)"}
+    for _ in range(task.step_limit + 4):
+        if tab.session.view().task_id != first:
+            break
+        tab.button(names["try"]).click()
+        wait_until(lambda: tab.session.view().phase is Phase.JUDGING, 90, "the try")
+        act = "accept" if tab.session.view().last_try.acceptable else "reject"
+        tab.button(names[act]).click()
+        wait_until(lambda: tab.session.view().phase is not Phase.JUDGING, 30, "the judgement")
+    else:
+        raise AssertionError("the episode did not end")
+    done = [e for e in app.store.stored_executions() if e.execution.labeller == "mo"]
+    assert any(e.status == "completed" for e in done)
