@@ -213,7 +213,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     print(
         format_table(
-            result.rows, f"Table I ({level} level, success = knot within {args.max_steps} steps)"
+            result.rows, f"Table I ({level} level, success = knot within {result.max_steps} steps)"
         )
     )
     if result.common_rows is not None:
@@ -307,7 +307,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "POLICY=K,...: those policies on their first K, the others on all (default: all)",
     )
     p.add_argument(
-        "--max-steps", type=integer(1), default=5, help="steps per episode (default 5, the paper's)"
+        "--max-steps",
+        type=integer(1),
+        default=None,
+        help="steps per episode (default: the task's step limit; the overhand knot's 5, the "
+        "paper's)",
     )
     reads(
         p.add_argument(

@@ -1,4 +1,5 @@
-"""`knotlab model info`: what a saved QModel is: features, hashes, settings and how it scored."""
+"""`knotlab model info`: what a saved QModel is: features, hashes, settings and how it scored.
+`knotlab model transfer`: a model's portable weights moved onto another task's library."""
 
 from __future__ import annotations
 
@@ -6,7 +7,13 @@ import argparse
 import json
 from typing import TYPE_CHECKING
 
-from knotlab.app.options import add_flag
+from knotlab.app.options import (
+    add_flag,
+    add_task_argument,
+    check_output,
+    library_file,
+    load_library,
+)
 from knotlab.core.jsonsafe import json_safe
 
 if TYPE_CHECKING:
@@ -58,6 +65,13 @@ def run_info(args: argparse.Namespace) -> int:
         if k in metrics
     ]
     print(f"  training:      {', '.join(shown) or '-'}")
+    moved = metrics.get("transplanted_from")
+    if moved:
+        print(
+            f"  transplanted: from the {moved['task']} model {moved['model_hash']} (library "
+            f"{moved['library_hash']}), {len(moved['columns'])} portable columns; not trained "
+            "on this library's labels"
+        )
     run = s["training_run"] or {}
     val = run.get("validation")
     if val:
@@ -65,6 +79,47 @@ def run_info(args: argparse.Namespace) -> int:
             f"  validation:    top-1 {val['top1']:.3f}, top-3 {val['top3']:.3f}, mean expert rank "
             f"{val['mean_expert_rank']:.2f} ({val['n_states']} states; labels {run.get('labels')})"
         )
+    return 0
+
+
+def run_transfer(args: argparse.Namespace) -> int:
+    """Move a model's weights on the portable columns onto a task's library and save it."""
+    from pathlib import Path
+
+    from knotlab.core.selection.features import LibraryFeaturizer
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.selection.transfer import transplant
+
+    out = check_output(Path(args.out), force=args.force, kind="model")
+    model = QModel.load(args.path)
+    library = load_library(library_file(args), args)
+    target = LibraryFeaturizer(
+        library,
+        phase_temperature=model.feature_spec.phase_temperature,
+        rank_features=model.feature_spec.rank_features,
+    ).feature_spec
+    moved = transplant(model, target)
+    moved.save(out)
+    columns = moved.metrics["transplanted_from"]["columns"]
+    summary = {
+        "model": str(out),
+        "model_hash": moved.content_hash(),
+        "from_model_hash": model.content_hash(),
+        "from_task": model.feature_spec.task,
+        "task": library.task,
+        "library_hash": library.content_hash(),
+        "columns": columns,
+        "zeroed": [n for n in target.names if n not in columns],
+    }
+    if args.json:
+        print(json.dumps(json_safe(summary), sort_keys=True))
+        return 0
+    print(
+        f"model {summary['model_hash']} saved to {out}: the {summary['from_task']} model "
+        f"{summary['from_model_hash']}'s weights on {len(columns)} portable columns "
+        f"({', '.join(columns)}) on the {library.task} library {summary['library_hash']}; "
+        f"its {len(summary['zeroed'])} per-library columns (demo, phase, landmark) get weight 0"
+    )
     return 0
 
 
@@ -79,3 +134,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     info.add_argument("path", help="model file (.npz) written by `knotlab train`")
     add_flag(info, "--json")
     info.set_defaults(func=run_info)
+    transfer = sub.add_parser(
+        "transfer",
+        help="a model's weights on the portable columns (costs, grasp distance, phase match) "
+        "moved onto another task's library, the per-library columns zeroed: no retraining",
+    )
+    transfer.add_argument("path", help="model file (.npz) written by `knotlab train`")
+    add_task_argument(transfer)
+    add_flag(transfer, "--library", detail="default: the task's shipped library")
+    add_flag(transfer, "--out", required=True)
+    add_flag(transfer, "--force")
+    add_flag(transfer, "--json")
+    transfer.set_defaults(func=run_transfer)

@@ -1,10 +1,12 @@
-"""The bookkeeping of two bench scripts: scan_ab's output comparison, sharing's ledger."""
+"""The bookkeeping of the bench scripts: comparisons, ledgers, reports and pairings."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from tests.bench_modules import load_bench_module
 
@@ -186,3 +188,36 @@ def test_greedy_validation_pairs_models_on_the_same_starts(project_root, tmp_pat
     for bad in ("a", f"a={model},a={model}", "a=/no/such.npz"):
         with pytest.raises(SystemExit):
             gv.parse_models(bad)
+
+
+def test_task_transfer_pairs_arms_with_the_per_task_model_and_refuses_errored_runs(
+    project_root, tmp_path
+) -> None:
+    import json
+
+    tt = load_bench_module(project_root, "task_transfer")
+
+    def folder(name: str, policy: str, wins: list[bool], error: str | None = None) -> Path:
+        path = tmp_path / name
+        path.mkdir()
+        lines = [
+            {"task_id": f"t{i:03d}", "policy": policy, "success": ok, "error": None}
+            for i, ok in enumerate(wins)
+        ]
+        if error:
+            lines[-1]["error"] = error
+        (path / "outcomes.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+        return path
+
+    ref = [True, True, False, False, True, False]
+    arm = [True, False, True, True, True, False]
+    per_task = tt._greedy_outcomes(folder("per", "greedy", ref), 6)
+    moved = tt._greedy_outcomes(folder("moved", "greedy", arm), 5)  # the first 5 tasks only
+    nn = tt._policy_outcomes(folder("nn", "nn", [False] * 6), "nn", 6)
+    rows = tt._summarise({"per-task": per_task, "moved": moved}, nn)
+    assert rows["moved"]["successes"] == 4 and rows["moved"]["n"] == 5
+    vs = rows["moved"]["vs_per_task"]  # on the 5 common tasks: per-task 3, moved 4
+    assert (vs["n"], vs["wins"], vs["losses"]) == (5, 2, 1) and vs["points"] == 20.0
+    assert rows["nn"]["vs_nn"]["points"] == 0.0 and rows["per-task"]["vs_nn"]["wins"] == 3
+    with pytest.raises(SystemExit, match="1 greedy episodes errored"):
+        tt._greedy_outcomes(folder("bad", "greedy", ref, error="boom"), 6)

@@ -104,3 +104,20 @@ def test_the_command_line_generates_a_figure8_library_and_start_set(tmp_path, ca
     assert cli.main(["tasks", "generate", "--seed", "3", "--library", str(lib_path),
                      "--out-dir", str(tmp_path / "o"), "--workers", "1"]) == 2  # fmt: skip
     assert "task 'figure8'" in capsys.readouterr().err
+
+
+def test_bench_runs_episodes_under_the_tasks_step_limit(tmp_path, capsys) -> None:
+    """Without --max-steps an episode gets the task's limit (6 here), not the overhand knot's 5."""
+    import json
+
+    from knotlab.app import cli
+
+    out = tmp_path / "bench"
+    argv = ["bench", "--task", "figure8", "--policies", "nn", "--tasks", "1", "--workers", "1"]
+    assert cli.main([*argv, "--out-dir", str(out), "--no-progress"]) == 0
+    assert "success = knot within 6 steps" in capsys.readouterr().out
+    results = json.loads((out / "results.json").read_text())
+    assert results["identity"]["max_steps"] == TASK.step_limit == 6
+    (line,) = (out / "outcomes.jsonl").read_text().splitlines()
+    record = json.loads(line)
+    assert record["success"] or record["n_steps"] == 6  # a failure used every allowed step

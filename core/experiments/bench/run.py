@@ -79,6 +79,7 @@ class BenchResult:
     wall_s: float
     paths: dict[str, str] = field(default_factory=dict)
     results: dict = field(default_factory=dict)
+    max_steps: int = 0  # the step limit the episodes ran under (the task's unless set)
 
 
 TaskLimits = int | Mapping[str, int] | None
@@ -333,6 +334,7 @@ def run_bench(
             "outcomes": str(out / OUTCOMES_FILE),
         },
         results,
+        int(max_steps),
     )
 
 
