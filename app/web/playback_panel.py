@@ -35,7 +35,7 @@ from knotlab.core.experiments.playback import (
     resimulate,
 )
 from knotlab.core.selection.explain import stage_name
-from knotlab.core.tasks import get_task
+from knotlab.core.tasks import DEFAULT_TASK, get_task
 
 FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
 SPEEDS = ("1x", "2x", "4x", "8x")
@@ -92,30 +92,50 @@ def save_export(data: bytes, folder: Path, stem: str, own: set[Path]) -> Path:
         return path
 
 
-def results_dirs(root: Path = defaults.RESULTS_DIR) -> list[str]:
-    """Bench results directories under results/ (those with a run.json): the main level first,
-    Table I's runs first within a level (the default source is the committed Table I)."""
+def results_dirs(root: Path = defaults.RESULTS_DIR, task: str = DEFAULT_TASK) -> list[str]:
+    """Bench results directories of one task under results/ (those with a run.json, at any
+    depth, the archive left out): the main level first, Table I's runs first within a level
+    (the default source is the committed Table I). A run names its task in run.json; runs made
+    before tasks existed are the overhand knot's."""
     if not root.is_dir():
         return []
-    found = sorted(str(p.parent) for p in root.glob("*/run.json"))
+    found = []
+    for run in sorted(root.rglob("run.json")):
+        if "archive" in run.relative_to(root).parts:
+            continue
+        try:
+            identity = json.loads(run.read_text(encoding="utf-8")).get("identity") or {}
+        except (OSError, ValueError, AttributeError):
+            continue  # not a bench run's file: not a source
+        if identity.get("task", DEFAULT_TASK) == task:
+            found.append(str(run.parent))
     return sorted(
         found, key=lambda d: (not d.endswith("_main"), not Path(d).name.startswith("table1"), d)
     )
 
 
-def first_task_id(results_dir: str) -> str | None:
-    """The task id of the first episode a results directory records (None if it has none)."""
+DEFAULT_POLICY = "la2x5"  # the paper's best policy: what an audience is shown first
+
+
+def first_episode(results_dir: str) -> tuple[str, str] | None:
+    """(policy, task id) of the first episode a results directory records: the default
+    policy's first when it ran, else the first line's; None when it has none."""
     path = Path(results_dir) / "outcomes.jsonl"
+    first: tuple[str, str] | None = None
     try:
         with path.open(encoding="utf-8") as fh:
             for line in fh:
-                with contextlib.suppress(ValueError):
-                    task_id = json.loads(line).get("task_id")
-                    if isinstance(task_id, str):
-                        return task_id
+                with contextlib.suppress(ValueError, AttributeError):
+                    record = json.loads(line)
+                    policy, task_id = record.get("policy"), record.get("task_id")
+                    if not (isinstance(policy, str) and isinstance(task_id, str)):
+                        continue
+                    if policy == DEFAULT_POLICY:
+                        return policy, task_id
+                    first = first or (policy, task_id)
     except OSError:
         return None
-    return None
+    return first
 
 
 class PlaybackPanel:
@@ -127,17 +147,20 @@ class PlaybackPanel:
         store_executions: Callable[[int], tuple[PlaybackEpisode, DemoLibrary]],
         set_label_visible: Callable[[bool], None],
         inspect: Callable[[np.ndarray, str], None] | None = None,
+        task: str = DEFAULT_TASK,
     ) -> None:
         self._inspect = inspect
+        self.task_name = task  # whose runs are listed, and whose shipped files are tried first
         self.client = client
         self._store_execution = store_executions
         self._set_label_visible = set_label_visible
         gui = client.gui
-        sources = (*results_dirs(), STORE)
+        sources = (*results_dirs(task=task), STORE)
         self.source = gui.add_dropdown("Source", sources)
-        self.policy = gui.add_text("Policy", "la2x5")
-        # The default task is one the default source holds, and follows the source.
-        self.task = gui.add_text("Task or episode id", first_task_id(sources[0]) or "0")
+        # The default policy and task are an episode the default source holds, and follow it.
+        policy, task_id = first_episode(sources[0]) or (DEFAULT_POLICY, "0")
+        self.policy = gui.add_text("Policy", policy)
+        self.task = gui.add_text("Task or episode id", task_id)
         self.source.on_update(lambda _e: self._default_task())
         self.load_button = gui.add_button("Load and replay", icon=viser.Icon.PLAYER_PLAY)
         self.status = gui.add_markdown("Pick an episode of the last Table I run, then Load.")
@@ -189,10 +212,10 @@ class PlaybackPanel:
                     source,
                     self.policy.value.strip(),
                     self.task.value.strip(),
-                    library_paths=[defaults.LIBRARY_PATH],
+                    library_paths=[defaults.library_path(self.task_name)],
                     task_set_paths=[
-                        defaults.task_set_path(lv, sp)
-                        for lv in defaults.LEVELS
+                        defaults.task_set_path(lv, sp, self.task_name)
+                        for lv in get_task(self.task_name).levels
                         for sp in ("test", "train")
                     ],
                 )
@@ -221,9 +244,14 @@ class PlaybackPanel:
         self.toggle()
 
     def _default_task(self) -> None:
-        """A results source's first task id, or an episode number for the store."""
+        """A results source's first episode (policy and task id), or the store's first."""
         source = str(self.source.value)
-        self.task.value = "1" if source == STORE else (first_task_id(source) or "")  # type: ignore[misc]
+        if source == STORE:
+            self.task.value = "1"  # type: ignore[misc]
+            return
+        policy, task_id = first_episode(source) or (str(self.policy.value), "")
+        self.policy.value = policy  # type: ignore[misc]
+        self.task.value = task_id  # type: ignore[misc]
 
     # ------------------------------------------------------------------ playing
     def toggle(self) -> None:

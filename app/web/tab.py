@@ -101,6 +101,7 @@ class LabelTab:
                     self.back_to_labelling() if labelling else self.drawer.show_only("playback")
                 ),
                 inspect=self.inspect.inspect_nodes,
+                task=app.resources.task.name,
             )
         self.refresh_models()
         self.show_retrain()

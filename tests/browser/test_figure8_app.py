@@ -1,11 +1,13 @@
 """The app serving the figure-eight task (`knotlab app --task figure8`): a labeller labels its
-ropes with the keyboard, Inspect explains a choice, Playback replays the stored episode; the
-store holds the figure-eight's labels only."""
+ropes with the keyboard and with the mouse, Inspect explains a choice with the figure-eight's
+demos, Playback offers and replays the figure-eight's own bench runs; the store holds the
+figure-eight's labels only."""
 
 from __future__ import annotations
 
 import pytest
 
+from knotlab.app.web.playback_panel import STORE
 from knotlab.app.web.session import Phase
 from knotlab.core.tasks import get_task
 from knotlab.labeling_db.errors import TaskMismatchError
@@ -82,3 +84,42 @@ def test_a_mouse_labeller_labels_a_figure8_rope_to_its_end(tabs, app):
         raise AssertionError("the episode did not end")
     done = [e for e in app.store.stored_executions() if e.execution.labeller == "mo"]
     assert any(e.status == "completed" for e in done)
+
+
+def _scene_has(page, name: str) -> bool:
+    return page.evaluate(
+        "(n) => { const s = window.__viserSceneTree; return !!(s && s.getState()[n]); }", name
+    )
+
+
+def test_inspect_explains_a_figure8_choice_with_its_own_demos(tabs, app):
+    tab = tabs("ina")
+    page = tab.page
+    page.get_by_role("tab", name="Inspect").click()
+    page.get_by_role("button", name="Inspect", exact=True).click()
+    panel = tab.server_tab.inspect
+    wait_until(lambda: "| nearest neighbour |" in panel.choices.content, 60, "the choices shown")
+    view = tab.server_tab.inspector.view
+    keys = app.resources.library.keys
+    assert view.choices.nn is not None and view.choices.greedy is not None
+    assert {r.demo_key for r in view.ranking} <= set(keys)  # the figure-eight's demos, ranked
+    assert view.ranking[0].demo_key == keys[view.choices.greedy]  # by its model: greedy's first
+    wait_until(lambda: _scene_has(page, "/inspect/rope"), 20, "the inspected rope drawn")
+    page.get_by_role("button", name="Back to the labelling view").click()
+    wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "the labelling view back")
+
+
+def test_playback_offers_and_replays_the_figure8s_own_runs(tabs, project_root):
+    tab = tabs("pia")
+    page = tab.page
+    panel = tab.server_tab.playback
+    page.get_by_role("tab", name="Playback").click()
+    runs = [str(p) for p in panel.source.options if p != STORE]
+    assert runs and all("/figure8/" in p for p in runs)  # never the overhand knot's runs
+    assert panel.source.value == str(project_root / "results" / "figure8" / "table1_main")
+    assert panel.task.value.startswith("main-test-")  # an episode that source holds
+    page.get_by_role("button", name="Load and replay").click()
+    wait_until(lambda: panel.replay is not None, 120, "the replay")
+    assert panel.library.task == "figure8" and "no episode" not in panel.status.content
+    wait_until(lambda: _scene_has(page, "/playback/rope"), 30, "the replayed rope in the browser")
+    tab.screenshot("figure8_playback")
