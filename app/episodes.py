@@ -16,9 +16,10 @@ from knotlab.labeling_db.store import Store
 
 
 def store_episode(
-    store: Store, episode_id: int, library: str | Path | None = None
+    store: Store, episode_id: int, library: str | Path | DemoLibrary | None = None
 ) -> tuple[PlaybackEpisode, DemoLibrary]:
-    """Episode ``episode_id`` of the store, and the library it was labelled with."""
+    """Episode ``episode_id`` of the store, and the library it was labelled with: ``library``
+    (a file, or the app's loaded library) when its hash matches, else the shipped default."""
     info = store.episode(episode_id)
     execution = next(
         (
@@ -31,6 +32,10 @@ def store_episode(
     if execution is None or not execution.steps:
         raise InvalidInputError(f"episode {episode_id} has no labelled steps to play")
     episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}")
+    if isinstance(library, DemoLibrary):
+        if execution.library_hash in (None, library.content_hash()):
+            return episode, library
+        library = None  # labelled with another library: look for it as a file
     if execution.library_hash is None:
         return episode, DemoLibrary.load(library or defaults.LIBRARY_PATH)
     found = load_matching_library([library, defaults.LIBRARY_PATH], execution.library_hash)

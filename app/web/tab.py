@@ -96,7 +96,7 @@ class LabelTab:
         with self.panels.tabs.add_tab("Playback", icon=viser.Icon.MOVIE):
             self.playback = PlaybackPanel(
                 client,
-                lambda episode_id: store_episode(app.store, episode_id),
+                lambda episode_id: store_episode(app.store, episode_id, app.resources.library),
                 lambda labelling: (
                     self.back_to_labelling() if labelling else self.drawer.show_only("playback")
                 ),

@@ -12,6 +12,7 @@ from knotlab.app.web.session import Phase
 from knotlab.core.tasks import get_task
 from knotlab.labeling_db.errors import TaskMismatchError
 from tests.browser.conftest import SEED_EXECUTIONS, start_app, wait_until
+from tests.browser.test_labelling import _scene_has
 
 
 @pytest.fixture(scope="module")
@@ -86,12 +87,6 @@ def test_a_mouse_labeller_labels_a_figure8_rope_to_its_end(tabs, app):
     assert any(e.status == "completed" for e in done)
 
 
-def _scene_has(page, name: str) -> bool:
-    return page.evaluate(
-        "(n) => { const s = window.__viserSceneTree; return !!(s && s.getState()[n]); }", name
-    )
-
-
 def test_inspect_explains_a_figure8_choice_with_its_own_demos(tabs, app):
     tab = tabs("ina")
     page = tab.page
@@ -123,3 +118,10 @@ def test_playback_offers_and_replays_the_figure8s_own_runs(tabs, project_root):
     assert panel.library.task == "figure8" and "no episode" not in panel.status.content
     wait_until(lambda: _scene_has(page, "/playback/rope"), 30, "the replayed rope in the browser")
     tab.screenshot("figure8_playback")
+    # A stored labelling episode of the figure-eight plays with the figure-eight's library too.
+    panel.source.value = STORE
+    panel.task.value = "1"
+    panel.replay = None
+    page.get_by_role("button", name="Load and replay").click()
+    wait_until(lambda: panel.replay is not None, 120, "the stored episode's replay")
+    assert panel.library.task == "figure8" and "cannot play" not in panel.status.content
