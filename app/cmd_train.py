@@ -92,6 +92,7 @@ def _run(args: argparse.Namespace) -> int:
         landmarks=args.landmarks,
         select=SelectBy(args.select),
         rank_features=args.rank_features,
+        portable=args.portable,
         tries=tries,
         validation_fraction=args.validation_fraction,
         refit_all=args.refit_all,
@@ -217,6 +218,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="add where each demo stands in the state's registration-cost order (relative cost, "
         "rank one-hots) to the features",
+    )
+    p.add_argument(
+        "--portable",
+        action="store_true",
+        help="fit on the columns any library computes alike (costs, their products, grasp "
+        "distance, phase match; no demo one-hots, landmarks or per-step phases): a model "
+        "another task can use (`knotlab model transfer`); --landmarks is then ignored",
     )
     reads(
         p.add_argument(

@@ -39,6 +39,7 @@ import json  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,19 +60,28 @@ from knotlab.core.selection.qmodel import QModel  # noqa: E402
 from knotlab.core.selection.transfer import (  # noqa: E402
     PortableColumns,
     pool_portable,
+    pool_with_own_columns,
     transplant,
 )
 from knotlab.core.selection.tries import apply_tries, read_tries  # noqa: E402
 from knotlab.core.tasks import get_task  # noqa: E402
 from knotlab.labeling_db.interchange import read_labels  # noqa: E402
 
-ARMS = ("per-task", "source as shipped", "source portable", "target portable", "shared")
-FITTED = ("source portable", "target portable", "shared")
+ARMS = (
+    "per-task",
+    "source as shipped",
+    "source portable",
+    "target portable",
+    "shared",
+    "target + demos",
+    "shared + demos",
+)
+FITTED = ("source portable", "target portable", "shared", "target + demos", "shared + demos")
 
 
 def slug(arm: str) -> str:
     """File-name form of an arm's name."""
-    return arm.replace(" ", "_")
+    return arm.replace(" + ", "+").replace(" ", "_")
 
 
 def featurised(labels: Path, tries: Path | None, library: DemoLibrary, workers: int):
@@ -94,13 +104,16 @@ def featurised(labels: Path, tries: Path | None, library: DemoLibrary, workers: 
 
 
 def fit_portable(
-    train: TrainingData, columns: PortableColumns, val: TrainingData, c_values: list[float]
+    train: TrainingData,
+    columns: PortableColumns,
+    validate: Callable[[QModel], dict],
+    c_values: list[float],
 ) -> tuple[QModel, list[dict]]:
-    """Fit on portable columns for each C (D = 1), the best by validation top-1 then rank."""
+    """Fit on the given columns for each C (D = 1), the best by validation top-1 then rank."""
     sweep = []
     for c in c_values:
         model = MaxMarginQLearner(C=c, D=1.0).fit(train, columns)
-        m = ranking_metrics(model, val)
+        m = validate(model)
         sweep.append((model, {"C": c, **m}))
     best = max(sweep, key=lambda x: (x[1]["top1"], -x[1]["mean_expert_rank"]))
     return best[0], [s for _, s in sweep]
@@ -160,21 +173,36 @@ def main() -> int:
         t_train_p, _ = pool_portable([(t_train, tgt_spec)])
         t_val_p, _ = pool_portable([(t_val, tgt_spec)])
         both_p, _ = pool_portable([(s_train, src_spec), (t_train, tgt_spec)])
+        own_t, cols_t = pool_with_own_columns([(args.target, t_train, tgt_spec)])
+        own_both, cols_both = pool_with_own_columns(
+            [(args.source, s_train, src_spec), (args.target, t_train, tgt_spec)]
+        )
+        carry = {f"{args.target}:{n}": n for n in tgt_spec.names if n.startswith("demo[")}
+
+        def on_target(model: QModel) -> dict:  # the target's held-out states, all its columns
+            return ranking_metrics(transplant(model, tgt_spec, also=carry), t_val)
+
         plan = {
-            "source portable": (s_train_p, s_val_p),
-            "target portable": (t_train_p, t_val_p),
-            "shared": (both_p, t_val_p),
+            "source portable": (s_train_p, cols, lambda m: ranking_metrics(m, s_val_p)),
+            "target portable": (t_train_p, cols, lambda m: ranking_metrics(m, t_val_p)),
+            "shared": (both_p, cols, lambda m: ranking_metrics(m, t_val_p)),
+            "target + demos": (own_t, cols_t, on_target),
+            "shared + demos": (own_both, cols_both, on_target),
         }
-        for arm, (train, val) in plan.items():
-            model, sweep = fit_portable(train, cols, val, c_values)
-            transplant(model, tgt_spec).save(models[arm])
+        for arm, (train, columns, validate) in plan.items():
+            if models[arm].exists():
+                continue
+            model, sweep = fit_portable(train, columns, validate, c_values)
+            transplant(model, tgt_spec, also=carry if "demos" in arm else None).save(models[arm])
             report["arms"][arm] = {
                 "sweep": sweep,
                 "chosen_C": model.hyperparameters["C"],
                 "train_states": len(train.states),
                 "validated_on": "source" if arm == "source portable" else "target",
             }
-        report["featurize_and_fit_s"] = round(time.perf_counter() - t0, 1)
+        # (summed over the runs that fitted something: arms added later fit in a later run)
+        spent = time.perf_counter() - t0
+        report["featurize_and_fit_s"] = round(report.get("featurize_and_fit_s", 0.0) + spent, 1)
         report["target_validation_states"] = len(t_val.states)
         fit_path.write_text(json.dumps(report, indent=1, sort_keys=True))
     todo = {**models, **extra_models}

@@ -12,6 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from knotlab.core.parallel import single_thread_blas
+
+# One BLAS thread, as every knotlab command and `make test` run: a replay, a registration or a
+# fit must give the numbers a command gives, also when pytest is started by hand.
+single_thread_blas()
+
 pytest.register_assert_rewrite("tests.db_fixtures", "tests.minilib")
 pytest_plugins = ["tests.db_fixtures"]
 

@@ -265,6 +265,9 @@ class QModelSearch:
     landmarks: tuple[int, int] = (50, 20)  # labelled, dead-end landmark states (0, 0 = none)
     select: SelectBy = SelectBy.TOP1
     rank_features: bool = False  # the cost-rank columns of `LibraryFeaturizer`
+    # Fit on the portable columns only (core/selection/transfer.py: no demo one-hots, landmarks
+    # or per-step phases; landmark counts are then ignored): a model another task can use.
+    portable: bool = False
     # Tried candidates (`core.selection.tries`) by (execution id, step): margin rows follow them
     tries: dict | None = field(default=None, repr=False)
     validation_fraction: float = 0.2
@@ -303,10 +306,11 @@ class QModelSearch:
             train_idx, val_idx = split_executions(
                 len(executions), self.validation_fraction, self.random_state
             )
+        counts = (0, 0) if self.portable else self.landmarks
         landmarks = sample_landmarks(
             [executions[i] for i in train_idx],
-            n_labelled=self.landmarks[0],
-            n_dead_ends=self.landmarks[1],
+            n_labelled=counts[0],
+            n_dead_ends=counts[1],
             seed=self.random_state,
         )
         t0 = time.perf_counter()
@@ -353,7 +357,7 @@ class QModelSearch:
                 learner = MaxMarginQLearner(C=C, D=D, margin_scale=self.margin_scale)
                 t1 = time.perf_counter()
                 try:
-                    fitted = learner.fit(train_data, featurizer)
+                    fitted = self._fit_one(learner, train_data, featurizer)
                 except KnotlabError as exc:
                     self.on_warning(f"C={C:g}, D={D:g}: training failed: {exc}")
                     continue
@@ -366,7 +370,9 @@ class QModelSearch:
         refitted = bool(self.refit_all and val_parts)
         if refitted:
             learner = MaxMarginQLearner(C=best.C, D=best.D, margin_scale=self.margin_scale)
-            final = learner.fit(merge_training_data(train_parts + val_parts), featurizer)
+            final = self._fit_one(
+                learner, merge_training_data(train_parts + val_parts), featurizer
+            )
         self.sweep_ = sweep
         self.best_ = best
         self.best_params_ = {"C": best.C, "D": best.D}
@@ -388,6 +394,7 @@ class QModelSearch:
             "validation": best.validation,
             "select": self.select.value,
             "rank_features": self.rank_features,
+            "portable": self.portable,
             "tried_states": n_tried,
             "landmarks": {
                 "labelled": self.landmarks[0],
@@ -411,3 +418,22 @@ class QModelSearch:
         }
         self.best_model_ = replace(final, metrics={**final.metrics, "training_run": self.info_})
         return self
+
+    def _fit_one(
+        self, learner: MaxMarginQLearner, data: TrainingData, featurizer: LibraryFeaturizer
+    ) -> QModel:
+        """One fit on the featurizer's columns, or on its portable ones placed back onto them
+        (weight 0 on the rest) when ``portable``."""
+        if not self.portable:
+            return learner.fit(data, featurizer)
+        from knotlab.core.selection.transfer import (
+            PortableColumns,
+            project_training_data,
+            transplant,
+        )
+
+        spec = featurizer.feature_spec
+        columns = PortableColumns.of(spec)
+        fitted = learner.fit(project_training_data(data, spec.names, columns.names), columns)
+        # Trained on this library's own labels: its metrics are its own, not a transplant's.
+        return replace(transplant(fitted, spec), metrics={**fitted.metrics, "portable": True})

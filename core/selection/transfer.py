@@ -19,7 +19,7 @@ Shape suffixes: a = actions (demos), d = feature columns.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,7 +30,8 @@ from knotlab.core.selection.learner import LabelledState, TrainingData
 from knotlab.core.selection.qmodel import QModel
 
 # Columns of one library: a demo's one-hot, a landmark's weight, a demo step's phase.
-_PER_LIBRARY = re.compile(r"^(demo\[.*\]|landmark\[.*\]|phase_\d+)$")
+# (A pooled model names another library's such column "<library>:demo[...]".)
+_PER_LIBRARY = re.compile(r"^(?:[^:\[]+:)?(demo\[.*\]|landmark\[.*\]|phase_\d+)$")
 PORTABLE_FEATURE_SET = "knotlab-portable-v1"
 
 
@@ -139,12 +140,58 @@ def pool_portable(
     return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead)), columns
 
 
-def transplant(model: QModel, target: FeatureSpec) -> QModel:
+def pool_with_own_columns(
+    parts: Sequence[tuple[str, TrainingData, FeatureSpec]],
+) -> tuple[TrainingData, PortableColumns]:
+    """Like :func:`pool_portable`, plus each part's demo one-hots as columns of its own, named
+    ``<part>:demo[...]`` (zero in every other part's states): shared weights on the portable
+    columns, a per-demo prior per library."""
+    if not parts:
+        raise InvalidInputError("nothing to pool")
+    base = PortableColumns.of(parts[0][2])
+    own = [(name, n) for name, _, spec in parts for n in spec.names if n.startswith("demo[")]
+    names = base.names + tuple(f"{name}:{n}" for name, n in own)
+    indicator = base.indicator_mask + (True,) * len(own)
+    states: list[LabelledState] = []
+    pairs: list[tuple[int, int]] = []
+    goals: list[int] = []
+    dead: list[np.ndarray] = []
+    n_exec = 0
+    for name, data, spec in parts:
+        base.check_same(PortableColumns.of(spec))
+        index = {n: i for i, n in enumerate(spec.names)}
+        src = [index.get(n.split(":", 1)[1] if n.startswith(f"{name}:") else n, -1)
+               for n in names]  # fmt: skip
+        src = [i if (i >= 0 and (is_portable(n) or n.startswith(f"{name}:"))) else -1
+               for i, n in zip(src, names, strict=True)]  # fmt: skip
+        take = np.array([max(i, 0) for i in src])
+        keep = np.array([i >= 0 for i in src])
+
+        def place(phi_ad: np.ndarray, take=take, keep=keep) -> np.ndarray:
+            return np.where(keep, phi_ad[:, take], 0.0)
+
+        off = len(states)
+        states += [
+            replace(s, phi_ad=place(s.phi_ad), execution=s.execution + n_exec) for s in data.states
+        ]
+        n_exec += 1 + max((s.execution for s in data.states), default=-1)
+        pairs += [(i + off, j + off) for i, j in data.bellman_pairs]
+        goals += [g + off for g in data.goal_states]
+        dead += [place(phi) for phi in data.dead_ends_phi]
+    columns = replace(base, names=names, indicator_mask=indicator)
+    return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead)), columns
+
+
+def transplant(
+    model: QModel, target: FeatureSpec, *, also: Mapping[str, str] | None = None
+) -> QModel:
     """``model``'s weights on the portable columns, placed on ``target``'s columns (another
     library's, possibly another task's); every per-library column of ``target`` gets weight 0.
 
     Its ranking of any state's demos is the source model's portable part (exactly its Q when
     the source was fitted on portable columns alone). ``target`` must have no landmarks.
+    ``also`` maps more of the model's columns to target columns to carry (a pooled model's
+    per-library columns onto that library's own, e.g. ``figure8:demo[s000-t0]`` -> ``demo[...]``).
     """
     if target.landmark_hash is not None:
         raise InvalidInputError(
@@ -162,7 +209,11 @@ def transplant(model: QModel, target: FeatureSpec) -> QModel:
             f"the model was fitted on '{source.observation_model}' observations, the target "
             f"library's are '{target.observation_model}'"
         )
-    src_index = {n: i for i, n in enumerate(source.names)}
+    src_index = {n: i for i, n in enumerate(source.names) if is_portable(n)}
+    for src_name, dst_name in (also or {}).items():
+        if src_name not in source.names or dst_name not in target.names:
+            raise InvalidInputError(f"cannot carry column {src_name!r} to {dst_name!r}")
+        src_index[dst_name] = source.names.index(src_name)
     d = len(target.names)
     w = np.zeros(d)
     mean = np.zeros(d)
@@ -170,7 +221,7 @@ def transplant(model: QModel, target: FeatureSpec) -> QModel:
     moved: list[str] = []
     for j, name in enumerate(target.names):
         i = src_index.get(name)
-        if i is None or not is_portable(name):
+        if i is None:
             continue
         w[j], mean[j], scale[j] = (
             model.weights_d[i],

@@ -100,6 +100,7 @@ def test_inspect_explains_a_figure8_choice_with_its_own_demos(tabs, app):
     assert {r.demo_key for r in view.ranking} <= set(keys)  # the figure-eight's demos, ranked
     assert view.ranking[0].demo_key == keys[view.choices.greedy]  # by its model: greedy's first
     wait_until(lambda: _scene_has(page, "/inspect/rope"), 20, "the inspected rope drawn")
+    tab.screenshot("figure8_inspect")
     page.get_by_role("button", name="Back to the labelling view").click()
     wait_until(lambda: tab.server_tab.drawer.label_root.visible, 10, "the labelling view back")
 
@@ -116,6 +117,11 @@ def test_playback_offers_and_replays_the_figure8s_own_runs(tabs, project_root):
     page.get_by_role("button", name="Load and replay").click()
     wait_until(lambda: panel.replay is not None, 120, "the replay")
     assert panel.library.task == "figure8" and "no episode" not in panel.status.content
+    from knotlab.app.web.playback_panel import FRAME_DT
+    from knotlab.core.experiments.playback import resimulate
+
+    want = resimulate(panel.episode, panel.library, dt=FRAME_DT)  # the panel shows the core's
+    assert panel.replay.knot == want.knot and list(panel.replay.warnings) == list(want.warnings)
     wait_until(lambda: _scene_has(page, "/playback/rope"), 30, "the replayed rope in the browser")
     tab.screenshot("figure8_playback")
     # A stored labelling episode of the figure-eight plays with the figure-eight's library too.

@@ -151,3 +151,34 @@ def test_policy_registry_rejects_bad_names_naming_them(name: str) -> None:
 def test_a_learned_policy_needs_a_model() -> None:
     with pytest.raises(InvalidInputError, match="needs a trained QModel"):
         policy_config("la2x5").build(None)
+
+
+def test_a_portable_search_fits_the_portable_columns_alone_and_places_them_on_the_library():
+    from knotlab.core.selection.transfer import (
+        PortableColumns,
+        is_portable,
+        project_training_data,
+        transplant,
+    )
+
+    library, executions = mini_library(3), mini_executions(3)
+    search = QModelSearch(
+        C=[10.0], D=[1.0], landmarks=(2, 0), portable=True, validation_fraction=0.34,
+        workers=1, progress=False,
+    )  # fmt: skip
+    model = search.fit(executions, library).best_model_
+    spec = LibraryFeaturizer(library).feature_spec
+    assert model.feature_spec.names == spec.names and model.landmarks is None  # none sampled
+    assert model.metrics["portable"] and model.metrics["training_run"]["portable"]
+    zero = [i for i, n in enumerate(spec.names) if not is_portable(n)]
+    assert zero and not np.any(model.weights_d[zero])
+    # The same fit by hand: the training split's states on the portable columns, transplanted.
+    from knotlab.core.selection.learner import build_training_data
+
+    train_idx, _ = split_executions(len(executions), 0.34, 0)
+    data = build_training_data([executions[i] for i in train_idx], LibraryFeaturizer(library))
+    columns = PortableColumns.of(spec)
+    by_hand = MaxMarginQLearner(C=10.0, D=1.0).fit(
+        project_training_data(data, spec.names, columns.names), columns
+    )
+    assert transplant(by_hand, spec).content_hash() == model.content_hash()

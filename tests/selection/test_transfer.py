@@ -197,3 +197,33 @@ def test_the_command_line_transfers_a_model_and_keeps_what_it_did_not_make(tmp_p
     assert "--force" in capsys.readouterr().err and out.read_bytes() == before
     assert cli.main(["model", "info", str(out)]) == 0
     assert "transplanted: from the overhand model" in capsys.readouterr().out
+
+
+def test_a_pooled_model_with_each_librarys_demo_priors_carries_its_own_onto_its_library():
+    from knotlab.core.selection.transfer import pool_with_own_columns
+
+    a, b = spec_of(demos=4, phases=3), spec_of(demos=5, phases=4)
+    data, columns = pool_with_own_columns(
+        [("knot_a", random_data(a, 6, 0), a), ("knot_b", random_data(b, 9, 1), b)]
+    )
+    assert columns.names[: len(PORTABLE)] == PORTABLE
+    assert columns.names[len(PORTABLE) :] == tuple(
+        [f"knot_a:{n}" for n in a.names if n.startswith("demo[")]
+        + [f"knot_b:{n}" for n in b.names if n.startswith("demo[")]
+    )
+    assert not any(is_portable(n) for n in columns.names[len(PORTABLE) :])
+    first_b = len(PORTABLE) + 4
+    assert not data.states[0].phi_ad[:, first_b:].any()  # knot_a's states: no knot_b priors
+    assert not data.states[6].phi_ad[:, len(PORTABLE) : first_b].any()
+    model = MaxMarginQLearner(C=10.0).fit(data, columns)
+    carry = {f"knot_b:{n}": n for n in b.names if n.startswith("demo[")}
+    moved = transplant(model, b, also=carry)
+    phi = np.random.default_rng(3).normal(size=(5, len(b.names)))
+    pooled_phi = np.zeros((5, len(columns.names)))
+    for j, name in enumerate(columns.names):
+        own = name.removeprefix("knot_b:")
+        if name in PORTABLE or name.startswith("knot_b:"):
+            pooled_phi[:, j] = phi[:, b.names.index(own)]
+    np.testing.assert_allclose(moved.q(phi), model.q(pooled_phi), rtol=0, atol=1e-12)
+    with pytest.raises(InvalidInputError, match="cannot carry"):
+        transplant(model, b, also={"knot_c:demo[x]": "demo[x]"})
