@@ -159,16 +159,12 @@ def pool_with_own_columns(
     n_exec = 0
     for name, data, spec in parts:
         base.check_same(PortableColumns.of(spec))
-        index = {n: i for i, n in enumerate(spec.names)}
-        src = [index.get(n.split(":", 1)[1] if n.startswith(f"{name}:") else n, -1)
-               for n in names]  # fmt: skip
-        src = [i if (i >= 0 and (is_portable(n) or n.startswith(f"{name}:"))) else -1
-               for i, n in zip(src, names, strict=True)]  # fmt: skip
-        take = np.array([max(i, 0) for i in src])
-        keep = np.array([i >= 0 for i in src])
+        take, keep = _column_sources(name, spec.names, names)
 
-        def place(phi_ad: np.ndarray, take=take, keep=keep) -> np.ndarray:
-            return np.where(keep, phi_ad[:, take], 0.0)
+        def place(
+            phi_ad: np.ndarray, take: np.ndarray = take, keep: np.ndarray = keep
+        ) -> np.ndarray:
+            return np.where(keep, phi_ad[:, take], 0.0)  # another library's columns: 0
 
         off = len(states)
         states += [
@@ -180,6 +176,25 @@ def pool_with_own_columns(
         dead += [place(phi) for phi in data.dead_ends_phi]
     columns = replace(base, names=names, indicator_mask=indicator)
     return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead)), columns
+
+
+def _column_sources(
+    part: str, names: Sequence[str], pooled: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each pooled column, the part's own column it is read from, and whether there is
+    one (portable columns by name; ``<part>:x`` from the part's column ``x``)."""
+    index = {n: i for i, n in enumerate(names)}
+    prefix = f"{part}:"
+    src = []
+    for n in pooled:
+        if n.startswith(prefix):
+            src.append(index.get(n.removeprefix(prefix), -1))
+        elif is_portable(n):
+            src.append(index.get(n, -1))
+        else:
+            src.append(-1)  # another part's own column
+    src_arr = np.asarray(src, dtype=int)
+    return np.maximum(src_arr, 0), src_arr >= 0
 
 
 def transplant(
