@@ -142,6 +142,7 @@ def main() -> int:
         metavar="NAME=PATH",
         help="another model of the target task to play and report beside the arms",
     )
+    ap.add_argument("--report", action="store_true", help="play nothing: report what ran")
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
@@ -220,7 +221,7 @@ def main() -> int:
         path = models[arm]
         if arm == "per-task" and _same_model(args.reference_dir, path):
             folder = args.reference_dir
-        elif arm in play or arm in extra_models:
+        elif not args.report and (arm in play or arm in extra_models):
             cmd = [
                 str(ROOT / ".venv/bin/knotlab"), "bench", "--task", args.target,
                 "--policies", "greedy", "--tasks", str(args.tasks), "--level", args.level,
@@ -363,13 +364,15 @@ def _plot(result: dict, path: Path) -> None:
     rows = result["greedy"]
     names = list(rows)
     fig, ax = plt.subplots(figsize=(8, 4))
+    palette = [f"C{k}" for k in range(10) if k != 7]  # C7 is the grey kept for NN
     for i, arm in enumerate(names):
         r = rows[arm]
         lo, hi = r["wilson"]
-        ax.bar(i, r["rate"], color="grey" if arm == "nn" else f"C{i}")
+        ax.bar(i, r["rate"], color="#7f7f7f" if arm == "nn" else palette[i % len(palette)])
         ax.plot([i, i], [lo, hi], color="black", lw=1.5)
         ax.text(i, hi + 0.01, f"{100 * r['rate']:.1f} %", ha="center", fontsize=9)
     ax.set_xticks(range(len(names)), [n.replace(" ", "\n") for n in names], fontsize=9)
+    ax.axhline(rows["nn"]["rate"], color="#7f7f7f", ls="--", lw=1)  # nearest neighbour
     ax.set_ylabel("greedy success (Wilson 95 %)")
     ax.set_ylim(0, 1)
     ax.set_title(
