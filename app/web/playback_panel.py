@@ -96,7 +96,8 @@ def results_dirs(root: Path = defaults.RESULTS_DIR, task: str = DEFAULT_TASK) ->
     """Bench results directories of one task under results/ (those with a run.json, at any
     depth, the archive left out): the main level first, Table I's runs first within a level
     (the default source is the committed Table I). A run names its task in run.json; runs made
-    before tasks existed are the overhand knot's."""
+    before tasks existed are the overhand knot's. Runs in a perturbed world or with a state
+    estimator are left out (a replay could not show what they did)."""
     if not root.is_dir():
         return []
     found = []
@@ -107,7 +108,11 @@ def results_dirs(root: Path = defaults.RESULTS_DIR, task: str = DEFAULT_TASK) ->
             identity = json.loads(run.read_text(encoding="utf-8")).get("identity") or {}
         except (OSError, ValueError, AttributeError):
             continue  # not a bench run's file: not a source
-        if identity.get("task", DEFAULT_TASK) == task:
+        # A replay simulates the nominal world from true observations: a run in a perturbed
+        # world or with a state estimator would not replay as it ran, so it is not offered.
+        world = identity.get("world", "nominal")
+        replayable = world == "nominal" and identity.get("estimator", "perfect") == "perfect"
+        if identity.get("task", DEFAULT_TASK) == task and replayable:
             found.append(str(run.parent))
     return sorted(
         found, key=lambda d: (not d.endswith("_main"), not Path(d).name.startswith("table1"), d)

@@ -25,20 +25,27 @@ def test_playback_lists_only_the_apps_tasks_runs_at_any_depth_never_the_archive(
 
     from knotlab.app.web.playback_panel import results_dirs
 
-    def run(path: str, task: str | None) -> None:
+    def run(path: str, task: str | None, **more: str) -> None:
         folder = tmp_path / path
         folder.mkdir(parents=True)
-        identity = {"seed": 0, **({"task": task} if task else {})}
+        identity = {"seed": 0, **({"task": task} if task else {}), **more}
         (folder / "run.json").write_text(json.dumps({"identity": identity}))
 
     run("table1_main", None)  # made before runs named their task: the overhand knot's
     run("figure8/table1_main", "figure8")
     run("figure8/transfer/greedy_shared", "figure8")
     run("archive/figure8_table1_main_5steps", "figure8")
+    run("figure8/robustness/combined25", "figure8", world="combined25")
+    run("figure8/robustness/tracker", "figure8", estimator="tracker")
+    run("figure8/robustness/nominal", "figure8", world="nominal", estimator="perfect")
     (tmp_path / "figure8" / "broken").mkdir()
     (tmp_path / "figure8" / "broken" / "run.json").write_text("not json")
     names = [p.removeprefix(str(tmp_path) + "/") for p in results_dirs(tmp_path, "figure8")]
-    assert names == ["figure8/table1_main", "figure8/transfer/greedy_shared"]
+    assert names == [
+        "figure8/table1_main",
+        "figure8/robustness/nominal",
+        "figure8/transfer/greedy_shared",
+    ]
     assert [p.removeprefix(str(tmp_path) + "/") for p in results_dirs(tmp_path)] == ["table1_main"]
 
 
