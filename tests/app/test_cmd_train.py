@@ -117,3 +117,20 @@ def test_train_refuses_to_replace_a_shipped_model_without_force(tmp_path, capsys
     err = capsys.readouterr().err
     assert "would replace a shipped or committed model" in err and len(err.splitlines()) == 1
     assert defaults.MODEL_PATH.read_bytes() == shipped
+
+
+def test_train_portable_fits_the_portable_columns_and_the_model_moves_to_another_library(
+    tmp_path, capsys
+):
+    from knotlab.core.selection.transfer import is_portable
+
+    args, out = mini_train_args(tmp_path)
+    assert cli.main([*args, "--portable"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["portable"] is True and summary["landmarks"]["n"] == 0
+    model = QModel.load(out)
+    names = model.feature_spec.names
+    assert model.landmarks is None and model.metrics["portable"] is True
+    per_library = [i for i, n in enumerate(names) if not is_portable(n)]
+    assert per_library and not np.any(model.weights_d[per_library])
+    assert np.any(model.weights_d[[i for i, n in enumerate(names) if is_portable(n)]])
