@@ -370,9 +370,7 @@ class QModelSearch:
         refitted = bool(self.refit_all and val_parts)
         if refitted:
             learner = MaxMarginQLearner(C=best.C, D=best.D, margin_scale=self.margin_scale)
-            final = self._fit_one(
-                learner, merge_training_data(train_parts + val_parts), featurizer
-            )
+            final = self._fit_one(learner, merge_training_data(train_parts + val_parts), featurizer)
         self.sweep_ = sweep
         self.best_ = best
         self.best_params_ = {"C": best.C, "D": best.D}

@@ -118,26 +118,7 @@ def pool_portable(
     Each part is one library's training data with the spec its columns follow; states keep
     their Bellman links and dead ends within their part (executions are renumbered).
     """
-    if not parts:
-        raise InvalidInputError("nothing to pool")
-    columns = PortableColumns.of(parts[0][1])
-    projected = []
-    for data, spec in parts:
-        columns.check_same(PortableColumns.of(spec))
-        projected.append(project_training_data(data, spec.names, columns.names))
-    states: list[LabelledState] = []
-    pairs: list[tuple[int, int]] = []
-    goals: list[int] = []
-    dead: list[np.ndarray] = []
-    n_exec = 0
-    for data in projected:
-        off = len(states)
-        states += [replace(s, execution=s.execution + n_exec) for s in data.states]
-        n_exec += 1 + max((s.execution for s in data.states), default=-1)
-        pairs += [(i + off, j + off) for i, j in data.bellman_pairs]
-        goals += [g + off for g in data.goal_states]
-        dead += list(data.dead_ends_phi)
-    return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead)), columns
+    return _pool([(str(i), data, spec) for i, (data, spec) in enumerate(parts)], own=False)
 
 
 def pool_with_own_columns(
@@ -146,12 +127,19 @@ def pool_with_own_columns(
     """Like :func:`pool_portable`, plus each part's demo one-hots as columns of its own, named
     ``<part>:demo[...]`` (zero in every other part's states): shared weights on the portable
     columns, a per-demo prior per library."""
+    return _pool(parts, own=True)
+
+
+def _pool(
+    parts: Sequence[tuple[str, TrainingData, FeatureSpec]], *, own: bool
+) -> tuple[TrainingData, PortableColumns]:
     if not parts:
         raise InvalidInputError("nothing to pool")
     base = PortableColumns.of(parts[0][2])
-    own = [(name, n) for name, _, spec in parts for n in spec.names if n.startswith("demo[")]
-    names = base.names + tuple(f"{name}:{n}" for name, n in own)
-    indicator = base.indicator_mask + (True,) * len(own)
+    demos = [
+        f"{name}:{n}" for name, _, spec in parts if own for n in spec.names if n.startswith("demo[")
+    ]
+    names = base.names + tuple(demos)
     states: list[LabelledState] = []
     pairs: list[tuple[int, int]] = []
     goals: list[int] = []
@@ -174,7 +162,7 @@ def pool_with_own_columns(
         pairs += [(i + off, j + off) for i, j in data.bellman_pairs]
         goals += [g + off for g in data.goal_states]
         dead += [place(phi) for phi in data.dead_ends_phi]
-    columns = replace(base, names=names, indicator_mask=indicator)
+    columns = replace(base, names=names, indicator_mask=base.indicator_mask + (True,) * len(demos))
     return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead)), columns
 
 

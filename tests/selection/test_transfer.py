@@ -12,6 +12,7 @@ from knotlab.core.selection.transfer import (
     is_portable,
     pool_portable,
     portable_names,
+    project_training_data,
     transplant,
 )
 
@@ -115,6 +116,12 @@ def test_pooling_keeps_each_parts_bellman_links_and_executions_apart() -> None:
     executions_b = {s.execution for s in pooled.states[6:]}
     assert executions_a.isdisjoint(executions_b)
     assert [s.phi_ad.shape[0] for s in pooled.states] == [4] * 6 + [6] * 9
+    # One part pooled is that part's portable columns, bit for bit (what `train --portable` fits).
+    alone, _ = pool_portable([(db, b)])
+    projected = project_training_data(db, b.names, PORTABLE)
+    for x, y in zip(alone.states, projected.states, strict=True):
+        assert np.array_equal(x.phi_ad, y.phi_ad)
+    assert all(np.array_equal(x, y) for x, y in zip(alone.dead_ends_phi, projected.dead_ends_phi))
 
 
 @pytest.mark.parametrize(
