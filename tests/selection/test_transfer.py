@@ -121,7 +121,8 @@ def test_pooling_keeps_each_parts_bellman_links_and_executions_apart() -> None:
     projected = project_training_data(db, b.names, PORTABLE)
     for x, y in zip(alone.states, projected.states, strict=True):
         assert np.array_equal(x.phi_ad, y.phi_ad)
-    assert all(np.array_equal(x, y) for x, y in zip(alone.dead_ends_phi, projected.dead_ends_phi))
+    pairs = zip(alone.dead_ends_phi, projected.dead_ends_phi, strict=True)
+    assert all(np.array_equal(x, y) for x, y in pairs)
 
 
 @pytest.mark.parametrize(
