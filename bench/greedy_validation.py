@@ -13,7 +13,7 @@ Outputs in --out-dir (resumable: episodes already in outcomes.jsonl are not reru
 regenerated from the seed and checked against the recorded hash): outcomes.jsonl (one line per
 model and start), summary.json and greedy_validation.png.
 
-Usage: .venv/bin/python bench/greedy_validation.py --level main --starts 200
+Usage: .venv/bin/python bench/greedy_validation.py [--task figure8] --level main --starts 200
        --models round0=results/policy_states_main/model_r0.npz,... --out-dir DIR [--workers 2]
 """
 
@@ -120,6 +120,7 @@ def summarise(lines: list[dict], names: list[str]) -> dict:
 def main() -> int:
     """Generate the starts, play greedy with every model, write the summary, print the table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--task", default="overhand", help="whose library and levels (overhand)")
     ap.add_argument("--level", default="main")
     ap.add_argument("--starts", type=int, default=200)
     ap.add_argument("--models", required=True, help="NAME=PATH,... (first: the reference)")
@@ -127,7 +128,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     models = parse_models(args.models)
-    task = get_task("overhand")
+    task = get_task(args.task)
     library_path = str(task.files.library_path)
     library = DemoLibrary.load(library_path)
     level = level_of(task, args.level)
