@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 from knotlab.app.options import (
     add_flag,
     add_task_argument,
+    check_input,
     check_output,
     library_file,
     load_library,
@@ -91,8 +92,13 @@ def run_transfer(args: argparse.Namespace) -> int:
     from knotlab.core.selection.transfer import transplant
 
     out = check_output(Path(args.out), force=args.force, kind="model")
-    model = QModel.load(args.path)
-    library = load_library(library_file(args), args)
+    # Both inputs before either is read: a missing one is named, whichever it is.
+    source = check_input(args.path, flag="PATH", kind="model")
+    library_path = library_file(args)
+    if args.library:
+        library_path = check_input(library_path, flag="--library", kind="demo library")
+    model = QModel.load(source)
+    library = load_library(library_path, args)
     target = LibraryFeaturizer(
         library,
         phase_temperature=model.feature_spec.phase_temperature,
@@ -142,7 +148,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     transfer.add_argument("path", help="model file (.npz) written by `knotlab train`")
     add_task_argument(transfer)
     add_flag(transfer, "--library", detail="default: the task's shipped library")
-    add_flag(transfer, "--out", required=True)
+    add_flag(transfer, "--out", required=True, detail="the moved model (.npz)")
     add_flag(transfer, "--force")
     add_flag(transfer, "--json")
     transfer.set_defaults(func=run_transfer)

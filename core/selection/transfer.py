@@ -194,7 +194,7 @@ def transplant(
     Its ranking of any state's demos is the source model's portable part (exactly its Q when
     the source was fitted on portable columns alone). ``target`` must have no landmarks.
     ``also`` maps more of the model's columns to target columns to carry (a pooled model's
-    per-library columns onto that library's own, e.g. ``figure8:demo[s000-t0]`` -> ``demo[...]``).
+    per-library columns onto that library's own: ``<library>:demo[k]`` -> ``demo[k]``).
     """
     if target.landmark_hash is not None:
         raise InvalidInputError(

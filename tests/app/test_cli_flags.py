@@ -131,6 +131,7 @@ TASK_COMMANDS = [
     "suggest",
     "demos import",
     "serve",
+    "model transfer",
 ]
 NO_TASK_COMMANDS = {
     "tie": "runs the overhand knot's fixed sequence on a straight rope: no task files",
@@ -169,6 +170,7 @@ def test_task_defaults_to_overhand_and_unknown_tasks_fail_in_one_line(
         "demos generate": ["--out", "x.npz"],
         "demos import": ["x.h5", "--out", "x.npz"],
         "tasks generate": ["--seed", "0"],
+        "model transfer": ["m.npz", "--out", "x.npz"],
     }.get(command, [])
     parser = cli.build_parser()
     assert parser.parse_args([*command.split(), *required]).task == "overhand"
