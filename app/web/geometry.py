@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, QhullError
 
 
 @lru_cache(maxsize=8)
@@ -246,3 +247,17 @@ def frame_points(
     depth = float(np.mean(p[:, 2]) - cam[2])
     position = rot @ cam
     return position, position + depth * rot[:, 2]
+
+
+def hull_points(points_p3: np.ndarray) -> np.ndarray:
+    """The points of a cloud a camera must frame: its convex hull's corners (a box holds the
+    cloud when it holds them, the framing constraints being linear), or all of them when the
+    cloud is flat or too small for a hull. Keeps framing a whole episode's frames cheap."""
+    pts = np.asarray(points_p3, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 5:
+        return pts
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except QhullError:  # all in a plane or a line
+        return pts

@@ -25,7 +25,7 @@ import viser
 
 from knotlab.app import defaults
 from knotlab.app.options import fresh_file, in_shipped_place
-from knotlab.app.web.geometry import tube_faces, tube_vertices
+from knotlab.app.web.geometry import hull_points, tube_faces, tube_vertices
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.experiments.playback import (
     PlaybackEpisode,
@@ -153,8 +153,10 @@ class PlaybackPanel:
         set_label_visible: Callable[[bool], None],
         inspect: Callable[[np.ndarray, str], None] | None = None,
         task: str = DEFAULT_TASK,
+        frame: Callable[[np.ndarray], None] | None = None,
     ) -> None:
         self._inspect = inspect
+        self._frame = frame  # points the camera at points clear of the panel (None: leave it)
         self.task_name = task  # whose runs are listed, and whose shipped files are tried first
         self.client = client
         self._store_execution = store_executions
@@ -245,6 +247,8 @@ class PlaybackPanel:
         self.export_button.disabled = False
         self.inspect_button.disabled = self._inspect is None
         self._set_label_visible(False)
+        if self._frame is not None:  # the whole episode in view, so the camera never moves
+            self._frame(hull_points(r.nodes_fk3))
         self.show(0)
         self.toggle()
 

@@ -102,6 +102,7 @@ class LabelTab:
                 ),
                 inspect=self.inspect.inspect_nodes,
                 task=app.resources.task.name,
+                frame=self.drawer.frame_points,
             )
         self.refresh_models()
         self.show_retrain()

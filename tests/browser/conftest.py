@@ -230,6 +230,21 @@ class Tab:
         box = self.page.locator("canvas").nth(1).bounding_box()
         return np.c_[box["x"] + uv[:, 0] * box["width"], box["y"] + uv[:, 1] * box["height"]]
 
+    def free_view(self, points_p3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(which points appear inside the canvas and left of the side panel, how much of that
+        free space the points spread over: a fraction across and a fraction down)."""
+        uv = self.project(points_p3)
+        panel = self.panel_box()
+        canvas = self.page.locator("canvas").nth(1).bounding_box()
+        inside = (
+            (uv[:, 0] >= canvas["x"])
+            & (uv[:, 0] <= panel["x"])
+            & (uv[:, 1] >= canvas["y"])
+            & (uv[:, 1] <= canvas["y"] + canvas["height"])
+        )
+        spread = np.ptp(uv, axis=0) / (panel["x"] - canvas["x"], canvas["height"])
+        return inside, spread
+
     def click_world(self, point_3: np.ndarray) -> None:
         """Click where a world point appears on the canvas (camera from the browser)."""
         ((u, v),) = self.project(np.asarray(point_3, float)[None])

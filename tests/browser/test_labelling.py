@@ -331,6 +331,14 @@ def test_playback_replays_a_table_i_episode_and_exports_a_gif(tabs, project_root
     # The server has drawn the frame; the browser's scene tree gets it a moment later.
     wait_until(lambda: _scene_has(page, "/playback/rope"), 20, "the replayed rope in the browser")
     assert tab.server_tab.drawer.label_root.visible is False
+    # The camera frames the whole episode (every frame's rope) clear of the panel, as close as
+    # it fits: it spans the free view's width or height less the margins (~0.94 here; the
+    # labelling view's camera, left as it was, gave 0.78).
+    from knotlab.app.web.geometry import hull_points
+
+    inside, spread = tab.free_view(hull_points(panel.replay.nodes_fk3))
+    assert inside.all(), f"{np.sum(~inside)} rope points off screen or under the panel"
+    assert spread.max() > 0.88, f"the episode fills only {spread} of the free view"
     tab.screenshot("playback")
     with page.expect_download(timeout=120_000) as download:
         page.get_by_role("button", name="Export GIF").click()

@@ -8,6 +8,7 @@ import trimesh
 from knotlab.app.web.geometry import (
     camera_rotation,
     frame_points,
+    hull_points,
     pick_candidate,
     pick_marker,
     pick_polyline,
@@ -85,3 +86,22 @@ def test_framing_puts_every_point_inside_the_box_and_touches_its_edge():
     # As close as they fit: some point is on the box's edge.
     gap = np.min(np.abs(np.concatenate([uv - box[:2], uv - box[2:]])))
     assert gap < 1e-3
+
+
+def test_framing_a_clouds_hull_corners_frames_the_whole_cloud():
+    # An episode's every frame of rope: framing the hull's corners alone keeps every point in
+    # the box (the constraints are linear), with the same camera as framing them all.
+    rng = np.random.default_rng(1)
+    cloud = rng.uniform([-0.3, -0.2, 0.0], [0.4, 0.3, 0.2], (4000, 3))
+    corners = hull_points(cloud)
+    assert 4 <= len(corners) < 200
+    forward, up, fov, size = np.array([0.0, 0.75, -0.65]), np.array([0.0, 0, 1]), 1.3, (1280, 760)
+    box = (24.0, 24.0, 857.0, 736.0)
+    position, look_at = frame_points(corners, forward, up, fov, size, box)
+    uv = project(cloud, camera_rotation(look_at - position, up), position, fov, size)
+    assert (uv >= np.array(box[:2]) - 1e-6).all() and (uv <= np.array(box[2:]) + 1e-6).all()
+    full, _ = frame_points(cloud, forward, up, fov, size, box)
+    assert np.allclose(position, full, atol=1e-9)
+    # A flat cloud (a rope lying on the table) has no hull: all its points are kept.
+    flat = np.c_[cloud[:, :2], np.zeros(len(cloud))]
+    assert len(hull_points(flat)) == len(flat)
