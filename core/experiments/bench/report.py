@@ -113,7 +113,7 @@ def plot_table(rows: Sequence[dict], path: str | Path, title: str = "") -> Path:
     ax.set_xticks(x, [r["policy"] for r in rows])
     ax.set_ylim(0, 110)
     ax.set_ylabel("success rate (%)  [Wilson 95 %]")
-    ax.set_title(title or "Overhand knot within 5 steps")
+    ax.set_title(title or "success rate per policy")
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()

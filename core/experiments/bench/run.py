@@ -320,7 +320,12 @@ def run_bench(
         "outcomes": outcomes,
     }
     _write_json_atomic(out / RESULTS_FILE, results)
-    chart = plot_table(rows, out / CHART_FILE, title=f"{task_set.metadata.get('level', '')} test")
+    level = task_set.metadata.get("level", "")
+    chart = plot_table(
+        rows,
+        out / CHART_FILE,
+        title=f"{task.name}: {level} test, within {int(max_steps)} steps",
+    )
     return BenchResult(
         rows,
         common_rows,
