@@ -82,12 +82,35 @@ fi
 #    policies on one worker, an execution simulated once for all of them): the same outcomes,
 #    ~30 % less time (bench/sharing.py), no priority order; the recorded decision times are
 #    then those of policies that found part of their simulations done.
-model="${out}/model_${level}.npz"
+# MODEL=levels (the overhand knot): bench with the model bench/level_models.py chose for each
+# level on held-out training starts (four candidates fitted on the main and hard levels' labels
+# and the main level's policy states; resumable, the committed models and scores are read back).
+# Needs both levels' labels and tries (`STOP=labels scripts/table1.sh hard`) and the policy
+# states (`bench/policy_states.py --rounds 2 --out-dir results/policy_states_main`). The tables
+# go to results/table1_LEVEL as before: move the committed ones to results/archive/ first (a
+# results folder refuses another model's outcomes). MODEL=FILE benches with that model file.
+model_of() {
+  case "${MODEL:-}" in
+    "") echo "${out}/model_${level}.npz" ;;
+    levels)
+      $bin/python -c "import json,sys; print(json.load(open(sys.argv[1]))['chosen'][sys.argv[2]])" \
+        "results/level_models/levels.json" "$1" | sed 's|^|results/level_models/model_|; s|$|.npz|'
+      ;;
+    *) echo "$MODEL" ;;
+  esac
+}
+if [ "${MODEL:-}" = levels ]; then
+  if [ "$task" != overhand ]; then
+    echo "table1.sh: MODEL=levels is the overhand knot's level study" >&2
+    exit 2
+  fi
+  $bin/python bench/level_models.py --out-dir results/level_models --workers 2
+fi
 share=()
 if [ -z "${SHARE:-}" ]; then
   for lv in main hard; do
     $bin/knotlab bench "${t[@]}" --policies nn,greedy,la2x5 --tasks 500 --level "$lv" \
-      --model "$model" --out-dir "${out}/table1_${lv}" --force
+      --model "$(model_of "$lv")" --out-dir "${out}/table1_${lv}" --force
   done
 else
   share=(--share-simulations)
@@ -95,5 +118,5 @@ fi
 for lv in main hard; do
   $bin/knotlab bench "${t[@]}" --policies nn,greedy,la2x5,oracle,la1x10 --tasks 500 \
     --first "oracle=${first},la1x10=${first}" "${share[@]}" \
-    --level "$lv" --model "$model" --out-dir "${out}/table1_${lv}" --force
+    --level "$lv" --model "$(model_of "$lv")" --out-dir "${out}/table1_${lv}" --force
 done
