@@ -62,6 +62,8 @@ class EpisodeInfo:
     # goes): the rollout step its first label is at, and the demos the policy chose before.
     first_step: int = 0
     policy_chosen: tuple[str, ...] = ()
+    # The policy's choice that failed in that first state (greyed out there again on a resume).
+    policy_failed: str | None = None
 
 
 @dataclass(frozen=True)

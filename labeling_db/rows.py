@@ -151,6 +151,7 @@ def _episode_info(session: Session, ep: Episode) -> EpisodeInfo:
         finished_at=ep.finished_at,
         first_step=int(reached.get("step", 0)),
         policy_chosen=tuple(str(k) for k in reached.get("chosen_before", ())),
+        policy_failed=None if reached.get("failed_demo") is None else str(reached["failed_demo"]),
     )
 
 

@@ -324,6 +324,19 @@ class LabelSession:
         self._show_state()
         if self.model_mode and info.n_labels == 0 and info.first_step == 0 and self.candidates:
             self.phase = Phase.MODEL  # a fresh start: the model drives first
+        if info.n_labels == 0 and info.policy_failed is not None:
+            self._grey_model_failure(info.policy_failed)
+
+    def _grey_model_failure(self, demo_key: str) -> None:
+        """The state the model reached, placed again: its failed choice greyed out as when
+        it was handed over (the ranking is the same, bit for bit)."""
+        failed = next((c for c in self.candidates if c.ranked.demo_key == demo_key), None)
+        if failed is None:
+            return
+        self.rejected.add(failed.ranked.rank)
+        self.model_failed = failed.ranked.rank
+        left = [c.ranked.rank for c in self.candidates if c.ranked.rank not in self.rejected]
+        self.selected = left[0] if left else None
 
     def _show_state(self) -> None:
         """Observe, scan and rank the world's current state (the greedy policy's ranking)."""
@@ -560,16 +573,17 @@ class LabelSession:
                 "start_rope_hash": start_rope_hash(self._start_nodes()),  # as the CLI hashes it
                 "labeller": self.labeller,
                 "why": why,
+                # greyed out again when the state is placed again (undo, resume)
+                "failed_demo": None
+                if failed_rank is None
+                else self.candidate(failed_rank).ranked.demo_key,
             }
             assert self._placed_from is not None
             self.episode = self.store.mark_reached(
                 self.episode.episode_id, self._placed_from, reached
             )
-        if failed_rank is not None:
-            self.rejected.add(failed_rank)  # it would fail the same way again
-            self.model_failed = failed_rank
-            left = [c.ranked.rank for c in self.candidates if c.ranked.rank not in self.rejected]
-            self.selected = left[0] if left else None
+        if failed_rank is not None:  # it would fail the same way again
+            self._grey_model_failure(self.candidate(failed_rank).ranked.demo_key)
         where = "this start" if self.first_step == 0 else f"step {self.first_step + 1}"
         self.message = f"{why}: label {where}"
 

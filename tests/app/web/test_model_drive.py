@@ -94,6 +94,20 @@ def test_undo_and_resume_return_to_the_state_the_model_reached_bit_for_bit(store
         c.ranked.demo_key for c in shown.candidates
     ]
     assert [c.ranked.score for c in back.candidates] == [c.ranked.score for c in shown.candidates]
+    # The model's failed choice is greyed out again, as it was when the rope was handed over.
+    assert shown.model_failed is not None and shown.model_failed in shown.rejected
+    assert (back.model_failed, back.rejected, back.selected) == (
+        shown.model_failed,
+        shown.rejected,
+        shown.selected,
+    )
+    s.world.close()  # a crash before the first label: a restart resumes the reached state
+    crashed = LabelSession(store, resources, "ann")
+    crashed.start()
+    again_shown = crashed.view()
+    assert np.array_equal(again_shown.rope_nodes_k3, shown.rope_nodes_k3)
+    assert (again_shown.model_failed, again_shown.rejected) == (shown.model_failed, shown.rejected)
+    s = crashed
     accept_something(s)
     after = s.view()
     s.world.close()  # the tab went away without closing: a restart resumes
