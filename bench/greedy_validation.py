@@ -157,6 +157,18 @@ def main() -> int:
             raise SystemExit(f"{out}: made with other starts; use another --out-dir")
     outcomes = out / "outcomes.jsonl"
     lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.exists() else []
+    hashes = {name: QModel.load(path).content_hash() for name, path in models.items()}
+    stale = sorted(
+        {
+            ln["model"]
+            for ln in lines
+            if hashes.get(ln["model"], ln["model_hash"]) != ln["model_hash"]
+        }
+    )
+    if stale:  # a name now given to another file: its old episodes are not this model's
+        raise SystemExit(
+            f"{out}: {', '.join(stale)} ran with another model file; use another --out-dir"
+        )
     done = {(ln["model"], ln["task_id"]) for ln in lines}
     jobs = [
         (name, library_path, str(path), s)
@@ -168,7 +180,7 @@ def main() -> int:
         for _, line in imap_processes(
             _episode, jobs, workers=args.workers, desc=f"greedy on {len(starts)} starts"
         ):
-            line["model_hash"] = QModel.load(models[line["model"]]).content_hash()
+            line["model_hash"] = hashes[line["model"]]
             fh.write(json.dumps(line) + "\n")
             fh.flush()
             lines.append(line)
