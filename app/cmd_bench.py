@@ -71,7 +71,7 @@ def policy_list(text: str) -> list[str]:
             config = policy_config(name)
         except KnotlabError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
-        if config.kind in ("lookahead", "robust") and not (
+        if config.kind in ("lookahead", "robust", "adaptive") and not (
             config.depth <= MAX_LOOKAHEAD_DEPTH and config.width <= MAX_LOOKAHEAD_WIDTH
         ):
             raise argparse.ArgumentTypeError(

@@ -134,8 +134,9 @@ def _model_error_rows(args: argparse.Namespace) -> list[PairedRow]:
 
 
 def _robust_rows(args: argparse.Namespace) -> list[PairedRow]:
-    """Each robust lookahead rla<D>x<W>k.. in ``--robust-dir/<setting>`` against the plain
-    lookahead la<D>x<W> in ``--out-dir/<setting>``, on the tasks both ran."""
+    """Each robust (rla<D>x<W>k..) or adaptive (ala<D>x<W>k..) lookahead in
+    ``--robust-dir/<setting>`` against the plain lookahead la<D>x<W> in ``--out-dir/<setting>``,
+    on the tasks both ran."""
     import re
 
     rows: list[PairedRow] = []
@@ -146,7 +147,7 @@ def _robust_rows(args: argparse.Namespace) -> list[PairedRow]:
         robust = _outcomes(folder / "outcomes.jsonl")
         plain = _outcomes(Path(args.out_dir) / folder.name / "outcomes.jsonl")
         for policy, recs in robust.items():
-            match = re.fullmatch(r"rla(\d+)x(\d+)k\d+(min)?", policy)
+            match = re.fullmatch(r"[ra]la(\d+)x(\d+)k\d+(min)?", policy)
             if match and f"la{match[1]}x{match[2]}" in plain:
                 base = plain[f"la{match[1]}x{match[2]}"]
                 rows.append(paired_row(folder.name, policy, list(recs.values()), base))

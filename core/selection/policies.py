@@ -22,7 +22,7 @@ from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.ranking import demo_scores, rank_order
 
-PolicyKind = Literal["nn", "greedy", "lookahead", "robust", "oracle"]
+PolicyKind = Literal["nn", "greedy", "lookahead", "robust", "adaptive", "oracle"]
 
 
 def _best_of(scores_a: np.ndarray) -> Decision:
@@ -132,11 +132,16 @@ class PolicyConfig:
             return RobustLookaheadPolicy(
                 model, self.depth, self.width, self.members, self.aggregate
             )
+        if self.kind == "adaptive":
+            from knotlab.core.selection.adaptive import AdaptiveLookaheadPolicy
+
+            return AdaptiveLookaheadPolicy(model, self.depth, self.width, self.members)
         return LookaheadPolicy(model, self.depth, self.width)
 
 
 _LOOKAHEAD_NAME = re.compile(r"la([1-9][0-9]*)x([1-9][0-9]*)")
 _ROBUST_NAME = re.compile(r"rla([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)(min)?")
+_ADAPTIVE_NAME = re.compile(r"ala([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)")
 _FIXED_POLICIES = {
     "nn": PolicyConfig("nn", "nn", needs_model=False, simulates=False),
     "greedy": PolicyConfig("greedy", "greedy", needs_model=True, simulates=False),
@@ -146,9 +151,14 @@ _FIXED_POLICIES = {
 
 def policy_config(name: str) -> PolicyConfig:
     """The config of a policy name: nn, greedy, la<depth>x<width> (e.g. la2x5), the robust
-    lookahead rla<depth>x<width>k<members>[min] (e.g. rla2x5k2) or oracle."""
+    lookahead rla<depth>x<width>k<members>[min] (e.g. rla2x5k2), the adaptive lookahead
+    ala<depth>x<width>k<members> (e.g. ala2x5k4) or oracle."""
     if name in _FIXED_POLICIES:
         return _FIXED_POLICIES[name]
+    adaptive = _ADAPTIVE_NAME.fullmatch(name)
+    if adaptive is not None:
+        depth, width, members = (int(adaptive.group(i)) for i in (1, 2, 3))
+        return PolicyConfig(name, "adaptive", True, True, depth, width, members)
     robust = _ROBUST_NAME.fullmatch(name)
     if robust is not None:
         depth, width, members = (int(robust.group(i)) for i in (1, 2, 3))
@@ -158,7 +168,7 @@ def policy_config(name: str) -> PolicyConfig:
     if match is None:
         raise InvalidInputError(
             f"unknown policy {name!r}; expected nn, greedy, la<D>x<W> (e.g. la2x5), "
-            "rla<D>x<W>k<K>[min] (e.g. rla2x5k2) or oracle"
+            "rla<D>x<W>k<K>[min] (e.g. rla2x5k2), ala<D>x<W>k<K> (e.g. ala2x5k4) or oracle"
         )
     depth, width = int(match.group(1)), int(match.group(2))
     return PolicyConfig(name, "lookahead", True, True, depth, width)
