@@ -265,7 +265,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=policy_list,
         default=DEFAULT_POLICIES,
         help=f"comma-separated: nn, greedy, la<D>x<W> (D <= {MAX_LOOKAHEAD_DEPTH}, "
-        f"W <= {MAX_LOOKAHEAD_WIDTH}), oracle (default {DEFAULT_POLICIES})",
+        f"W <= {MAX_LOOKAHEAD_WIDTH}), oracle; in a world unlike the model also the robust "
+        "rla<D>x<W>k<K>[min] and the adaptive ala<D>x<W>k<K> "
+        f"(default {DEFAULT_POLICIES})",
     )
     add_flag(p, "--tasks", default=500, detail="the test set's (default 500)")
     add_task_argument(p)
