@@ -234,6 +234,12 @@ def create_app(pool: DecisionPool, info: ServiceInfo, *, token: str | None = Non
             policy = policy_config(req.policy or info.default_policy)
         except KnotlabError as exc:
             raise _RefusedError(422, f"policy: {exc}") from None
+        if policy.kind == "adaptive":  # its model estimate lives across an episode's calls
+            raise _RefusedError(
+                422,
+                f"policy: {policy.name!r} re-estimates its model from an episode's earlier "
+                "steps, which a stateless service does not keep: use la<D>x<W> or rla<D>x<W>k<K>",
+            )
         if info.model_hash is None and policy.needs_model:
             raise _RefusedError(
                 422, f"policy: {policy.name!r} needs a Q-model and this service has none"

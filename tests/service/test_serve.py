@@ -117,6 +117,8 @@ def test_choose_policies_and_what_lookahead_needs(service, agent, clouds):
             kl.choose(cloud, policy="la1x2")
         with pytest.raises(ServiceError, match="policy: unknown policy 'best'"):
             kl.choose(cloud, policy="best")
+        with pytest.raises(ServiceError, match="policy: 'ala2x5k4' re-estimates its model"):
+            kl.choose(cloud, policy="ala2x5k4")
         with pytest.raises(ServiceError, match="step_index"):
             kl.choose(cloud, step_index=5)
 
