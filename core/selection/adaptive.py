@@ -14,9 +14,9 @@ totals afresh.
 
 With the agent's model equal to the world and a perfect estimate, member 0 predicts every step
 exactly (error 0), so this policy makes the plain lookahead's choices, bit for bit. A decision
-costs one lookahead plus k executions (about 1.3x the plain lookahead at k = 4 on the overhand
-knot; the robust lookahead costs k lookaheads). A member's simulated outcome is never handed back:
-the world executes the choice.
+costs one lookahead plus k - 1 executions (member 0's prediction is the search's own when it
+planned there); the robust lookahead costs k lookaheads. A member's simulated outcome is never
+handed back: the world executes the choice.
 Shape suffix: a = demos (actions), k = rope nodes, m = members.
 """
 
