@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import viser
 
 from knotlab.app.web.scene import candidate_label, rank_colour
-from knotlab.app.web.session import Phase, SessionView
+from knotlab.app.web.session_records import Phase, SessionView
 
 if TYPE_CHECKING:
     from knotlab.app.web.jobs import HeldOutScores, RetrainOutcome

@@ -18,7 +18,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.geometry import frame_points, pick_candidate, tube_faces, tube_vertices
-from knotlab.app.web.session import Candidate, Phase, SessionView
+from knotlab.app.web.session_records import Candidate, Phase, SessionView
 from knotlab.core.world.frames import FrameRecorder
 
 ROPE_RADIUS = 0.01  # m, as the simulator's rope

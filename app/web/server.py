@@ -25,7 +25,7 @@ from knotlab.app.web.resources import (
     save_qmodel_to_store,
     seed_shipped_labels,
 )
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from knotlab.app.web.sim_pool import SimPool
 from knotlab.app.web.tab import LabelTab, NotifyColour
 from knotlab.labeling_db.store import LabelMix, Store

@@ -23,14 +23,8 @@ from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, pixel_ratio_of
-from knotlab.app.web.session import (
-    FRAME_DT,
-    DriveOutcome,
-    LabelSession,
-    Phase,
-    SessionError,
-    SessionView,
-)
+from knotlab.app.web.session import FRAME_DT, LabelSession
+from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError, SessionView
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
 

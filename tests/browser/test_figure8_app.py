@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from knotlab.app.web.playback_panel import STORE
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from knotlab.core.tasks import get_task
 from knotlab.labeling_db.errors import TaskMismatchError
 from tests.browser.conftest import SEED_EXECUTIONS, start_app, wait_until

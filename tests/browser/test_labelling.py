@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import viser
 
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from tests.browser.conftest import give_name, open_page, open_tab, wait_until
 
 

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 
 from knotlab.app.web.scene import candidate_label
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from knotlab.core.selection.scan_cache import ScanSummaryCache
 from tests.browser.conftest import Tab, give_name, keep_shot, open_page, open_tab, wait_until
 from tests.browser.test_labelling import _scene_has

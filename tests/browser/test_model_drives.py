@@ -4,7 +4,7 @@ store records which policy and model reached it."""
 
 from __future__ import annotations
 
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from knotlab.core.selection.labels import REACHED_BY
 from tests.browser.conftest import wait_until
 

@@ -16,7 +16,7 @@ import pytest
 
 from knotlab.app import defaults
 from knotlab.app.web import resources as app_resources
-from knotlab.app.web.session import Phase
+from knotlab.app.web.session_records import Phase
 from knotlab.core.selection.qmodel import QModel
 from tests.browser.conftest import open_tab, start_app, wait_until
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knotlab.app.web.session import DriveOutcome, LabelSession, Phase, SessionError, stored_nodes
+from knotlab.app.web.session import LabelSession, stored_nodes
+from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError
 from knotlab.core.selection.labels import REACHED_BY
 from knotlab.core.world.sim import RopeWorld
 from tests.app.web.sessions import accept_something

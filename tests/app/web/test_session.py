@@ -10,7 +10,8 @@ import contextlib
 import numpy as np
 import pytest
 
-from knotlab.app.web.session import LabelSession, Phase, SessionError
+from knotlab.app.web.session import LabelSession
+from knotlab.app.web.session_records import Phase, SessionError
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
