@@ -154,6 +154,34 @@ def _robust_rows(args: argparse.Namespace) -> list[PairedRow]:
     return rows
 
 
+def _member_use(args: argparse.Namespace) -> dict[str, dict]:
+    """Per setting and adaptive lookahead: how many decisions it planned in a member other than
+    the agent's own model, overall and by step (from the outcomes' ``planned_in``)."""
+    use: dict[str, dict] = {}
+    roots = [Path(args.out_dir), Path(getattr(args, "robust_dir", None) or args.out_dir)]
+    for root in dict.fromkeys(roots):
+        if not root.is_dir():
+            continue
+        for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+            for policy, recs in _outcomes(folder / "outcomes.jsonl").items():
+                planned = [r.get("planned_in", []) for r in recs.values()]
+                if not any(planned):
+                    continue
+                by_step: dict[int, list[int]] = {}
+                for members in planned:
+                    for i, m in enumerate(members):
+                        by_step.setdefault(i + 1, []).append(int(m))
+                flat = [m for ms in by_step.values() for m in ms]
+                use[f"{folder.name}/{policy}"] = {
+                    "decisions": len(flat),
+                    "other_member": sum(m != 0 for m in flat),
+                    "other_by_step": {
+                        s: sum(m != 0 for m in v) / len(v) for s, v in by_step.items()
+                    },
+                }
+    return use
+
+
 def report(args: argparse.Namespace) -> int:
     """Print the comparison table, write summary.json and the plot."""
     rows, tracker, names = _rows(args)
@@ -199,6 +227,13 @@ def report(args: argparse.Namespace) -> int:
                 f"{100 * r.matched_rate:.1f} % | {r.change_points:+.1f} | {r.lost} | {r.gained} | "
                 f"{r.p_value:.3g} |"
             )
+    members = _member_use(args)
+    for key, u in members.items():
+        steps = ", ".join(f"step {k}: {100 * v:.0f} %" for k, v in u["other_by_step"].items())
+        print(
+            f"\nAdaptive lookahead {key}: {u['other_member']} of {u['decisions']} decisions "
+            f"planned in a member other than the agent's own model ({steps})"
+        )
     worst = worst_factors(rows)
     if worst:
         print("\nThe single factor that costs each policy most:")
@@ -229,6 +264,7 @@ def report(args: argparse.Namespace) -> int:
         ],
         "worst_factor": {p: {"setting": s, "points": v} for p, (s, v) in worst.items()},
         "tracker_error": tracker,
+        "adaptive_members": members,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     if not rows:  # e.g. a folder of robust runs alone: they pair with plain runs, not the matched

@@ -99,6 +99,9 @@ class EpisodeOutcome:
     # With a state estimator that is not the world's own state: the mean node error (mm) of the
     # estimate each step decided from (absent otherwise).
     estimate_error_mm: tuple[float, ...] = ()
+    # With a policy that plans in one of several models (the adaptive lookahead): the member it
+    # planned in at each step, 0 being the agent's own model (absent otherwise).
+    planned_in: tuple[int, ...] = ()
 
     @classmethod
     def errored(
@@ -128,6 +131,7 @@ class EpisodeOutcome:
                 if self.estimate_error_mm
                 else {}
             ),
+            **({"planned_in": list(self.planned_in)} if self.planned_in else {}),
         }
 
 
@@ -173,6 +177,7 @@ class EpisodeRecord:
                 for s in self.steps
                 if "estimate_error_mm" in s.info
             ),
+            tuple(int(s.info["planned_in"]) for s in self.steps if "planned_in" in s.info),
         )
 
     def summary(self) -> dict:

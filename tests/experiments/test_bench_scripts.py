@@ -99,7 +99,7 @@ def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root,
     (robust / "combined25" / "outcomes.jsonl").write_text(
         "\n".join(_line("rla2x5k2", i, i != 1, estimate_error_mm=[4.0, 8.0]) for i in range(4))
         + "\n"
-        + "\n".join(_line("ala2x5k4", i, i != 3) for i in range(4))
+        + "\n".join(_line("ala2x5k4", i, i != 3, planned_in=[0, i % 2]) for i in range(4))
         + "\n"
     )
     args = SimpleNamespace(out_dir=str(out), matched=str(matched), robust_dir=str(robust))
@@ -109,6 +109,8 @@ def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root,
     assert "| combined25 | la2x5 | 4 | 50.0 % | 75.0 % | -25.0 |" in text  # against its control
     assert "| combined25 | rla2x5k2 | 4 | 75.0 % | 50.0 % | +25.0 |" in text  # robust vs plain
     assert "| combined25 | ala2x5k4 | 4 | 75.0 % | 50.0 % | +25.0 |" in text  # adaptive vs plain
+    assert "combined25/ala2x5k4: 2 of 8 decisions planned in a member other" in text
+    assert "(step 1: 0 %, step 2: 50 %)" in text
     summary = (out / "summary.json").read_text()
     assert '"model_error"' in summary and '"robust_vs_plain"' in summary
     assert (out / "robustness.png").stat().st_size > 1000

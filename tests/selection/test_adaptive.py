@@ -105,3 +105,19 @@ def test_in_a_world_unlike_its_model_it_plans_in_the_member_that_predicted_it(
             assert got.info["planned_in"] == 1 and got.outcome is None
         finally:
             policy.close()
+
+
+@pytest.mark.slow
+def test_an_episode_records_the_member_each_step_planned_in(lib, world, featurizer, transferer):
+    from knotlab.core.agent import Agent
+
+    start = lib[lib.index_of("s000-t0")].pre_nodes_k3
+    world.reset(start)
+    cloud = featurizer.observe(world)
+    model = _model(lib, featurizer, _ctx(world, featurizer, transferer, cloud, 0))
+    adaptive = Agent(lib, model, "ala1x2k2")
+    plain = Agent(lib, model, "la1x2")
+    got = adaptive.run_episode(world, start, max_steps=2).summary()
+    want = plain.run_episode(world, start, max_steps=2).summary()
+    assert got["planned_in"] == [0] * got["n_steps"]  # the model is the world: its own model
+    assert got["chosen"] == want["chosen"] and "planned_in" not in want
