@@ -266,7 +266,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_POLICIES,
         help=f"comma-separated: nn, greedy, la<D>x<W> (D <= {MAX_LOOKAHEAD_DEPTH}, "
         f"W <= {MAX_LOOKAHEAD_WIDTH}), oracle; in a world unlike the model also the robust "
-        "rla<D>x<W>k<K>[min] and the adaptive ala<D>x<W>k<K> "
+        "rla<D>x<W>k<K>[min][s<P>] and the adaptive ala<D>x<W>k<K>[s<P>] (P: the members' "
+        "spread in %%, default 25) "
         f"(default {DEFAULT_POLICIES})",
     )
     add_flag(p, "--tasks", default=500, detail="the test set's (default 500)")

@@ -147,7 +147,7 @@ def _robust_rows(args: argparse.Namespace) -> list[PairedRow]:
         robust = _outcomes(folder / "outcomes.jsonl")
         plain = _outcomes(Path(args.out_dir) / folder.name / "outcomes.jsonl")
         for policy, recs in robust.items():
-            match = re.fullmatch(r"[ra]la(\d+)x(\d+)k\d+(min)?", policy)
+            match = re.fullmatch(r"[ra]la(\d+)x(\d+)k\d+(min)?(s\d+)?", policy)
             if match and f"la{match[1]}x{match[2]}" in plain:
                 base = plain[f"la{match[1]}x{match[2]}"]
                 rows.append(paired_row(folder.name, policy, list(recs.values()), base))

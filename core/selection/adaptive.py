@@ -85,7 +85,8 @@ class AdaptiveLookaheadPolicy(Policy):
         self.model = model
         self.depth, self.width, self.members = depth, width, members
         self.spread, self.seed = spread, seed
-        self.name = f"ala{depth}x{width}k{members}"
+        spread_tag = "" if spread == 0.25 else f"s{round(100 * spread)}"
+        self.name = f"ala{depth}x{width}k{members}{spread_tag}"
         self._searches = [LookaheadPolicy(model, depth, width) for _ in range(members)]
         self._worlds: dict[tuple, list[RopeWorld]] = {}  # per model physics: members 1..k-1
         self._totals_m = np.zeros(members)

@@ -112,8 +112,9 @@ class PolicyConfig:
     simulates: bool  # simulates candidates at every step (slow: lookahead, oracle)
     depth: int = 0
     width: int = 0
-    members: int = 0  # robust lookahead: models in the ensemble
+    members: int = 0  # robust or adaptive lookahead: models in the ensemble
     aggregate: str = ""  # robust lookahead: "mean" or "min" over the members
+    spread: float = 0.25  # robust or adaptive lookahead: members' factors drawn within +-spread
 
     def build(self, model: QModel | None = None) -> Policy:
         """The policy object; a learned one needs ``model``."""
@@ -130,18 +131,29 @@ class PolicyConfig:
             from knotlab.core.selection.robust import RobustLookaheadPolicy
 
             return RobustLookaheadPolicy(
-                model, self.depth, self.width, self.members, self.aggregate
+                model, self.depth, self.width, self.members, self.aggregate, self.spread
             )
         if self.kind == "adaptive":
             from knotlab.core.selection.adaptive import AdaptiveLookaheadPolicy
 
-            return AdaptiveLookaheadPolicy(model, self.depth, self.width, self.members)
+            return AdaptiveLookaheadPolicy(model, self.depth, self.width, self.members, self.spread)
         return LookaheadPolicy(model, self.depth, self.width)
 
 
 _LOOKAHEAD_NAME = re.compile(r"la([1-9][0-9]*)x([1-9][0-9]*)")
-_ROBUST_NAME = re.compile(r"rla([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)(min)?")
-_ADAPTIVE_NAME = re.compile(r"ala([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)")
+# s<P>: the members' spread in percent (default 25), e.g. rla2x5k2s50.
+_ROBUST_NAME = re.compile(
+    r"rla([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)(min)?(?:s([1-9][0-9]?))?"
+)
+_ADAPTIVE_NAME = re.compile(
+    r"ala([1-9][0-9]*)x([1-9][0-9]*)k([2-9]|[1-9][0-9]+)(?:s([1-9][0-9]?))?"
+)
+
+
+def _spread(percent: str | None) -> float:
+    return 0.25 if percent is None else int(percent) / 100
+
+
 _FIXED_POLICIES = {
     "nn": PolicyConfig("nn", "nn", needs_model=False, simulates=False),
     "greedy": PolicyConfig("greedy", "greedy", needs_model=True, simulates=False),
@@ -151,24 +163,29 @@ _FIXED_POLICIES = {
 
 def policy_config(name: str) -> PolicyConfig:
     """The config of a policy name: nn, greedy, la<depth>x<width> (e.g. la2x5), the robust
-    lookahead rla<depth>x<width>k<members>[min] (e.g. rla2x5k2), the adaptive lookahead
-    ala<depth>x<width>k<members> (e.g. ala2x5k4) or oracle."""
+    lookahead rla<depth>x<width>k<members>[min][s<spread %>] (e.g. rla2x5k2, rla2x5k2s50), the
+    adaptive lookahead ala<depth>x<width>k<members>[s<spread %>] (e.g. ala2x5k4) or oracle."""
     if name in _FIXED_POLICIES:
         return _FIXED_POLICIES[name]
     adaptive = _ADAPTIVE_NAME.fullmatch(name)
     if adaptive is not None:
         depth, width, members = (int(adaptive.group(i)) for i in (1, 2, 3))
-        return PolicyConfig(name, "adaptive", True, True, depth, width, members)
+        spread = _spread(adaptive.group(4))
+        return PolicyConfig(name, "adaptive", True, True, depth, width, members, spread=spread)
     robust = _ROBUST_NAME.fullmatch(name)
     if robust is not None:
         depth, width, members = (int(robust.group(i)) for i in (1, 2, 3))
         aggregate = "min" if robust.group(4) else "mean"
-        return PolicyConfig(name, "robust", True, True, depth, width, members, aggregate)
+        spread = _spread(robust.group(5))
+        return PolicyConfig(
+            name, "robust", True, True, depth, width, members, aggregate, spread=spread
+        )
     match = _LOOKAHEAD_NAME.fullmatch(name)
     if match is None:
         raise InvalidInputError(
             f"unknown policy {name!r}; expected nn, greedy, la<D>x<W> (e.g. la2x5), "
-            "rla<D>x<W>k<K>[min] (e.g. rla2x5k2), ala<D>x<W>k<K> (e.g. ala2x5k4) or oracle"
+            "rla<D>x<W>k<K>[min][s<P>] (e.g. rla2x5k2), ala<D>x<W>k<K>[s<P>] (e.g. ala2x5k4) "
+            "or oracle"
         )
     depth, width = int(match.group(1)), int(match.group(2))
     return PolicyConfig(name, "lookahead", True, True, depth, width)

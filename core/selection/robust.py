@@ -57,7 +57,8 @@ class RobustLookaheadPolicy(Policy):
         self.depth, self.width, self.members = depth, width, members
         self.aggregate, self.spread, self.seed = aggregate, spread, seed
         suffix = "" if aggregate == "mean" else aggregate
-        self.name = f"rla{depth}x{width}k{members}{suffix}"
+        spread_tag = "" if spread == 0.25 else f"s{round(100 * spread)}"
+        self.name = f"rla{depth}x{width}k{members}{suffix}{spread_tag}"
         self._searches = [LookaheadPolicy(model, depth, width) for _ in range(members)]
         self._worlds: dict[tuple, list[RopeWorld]] = {}  # per model physics: members 1..k-1
 

@@ -28,7 +28,14 @@ def test_names_parse_to_an_adaptive_ensemble():
     config = policy_config("ala2x5k4")
     assert (config.kind, config.depth, config.width, config.members) == ("adaptive", 2, 5, 4)
     assert config.needs_model and config.simulates
-    for bad in ("ala2x5k1", "ala2x5", "ala0x5k2", "ala2x5k2min"):
+    assert config.spread == 0.25
+    wide = policy_config("ala2x5k4s50")
+    assert (wide.members, wide.spread) == (4, 0.5)
+    q = QModel(np.zeros(1), 0.0, np.zeros(1), np.ones(1), None, {})  # type: ignore[arg-type]
+    assert make_policy("ala2x5k4s50", q).name == "ala2x5k4s50"
+    assert make_policy("rla2x5k2mins50", q).name == "rla2x5k2mins50"
+    assert make_policy("ala2x5k4", q).name == "ala2x5k4"
+    for bad in ("ala2x5k1", "ala2x5", "ala0x5k2", "ala2x5k2min", "ala2x5k2s0", "ala2x5k2s100"):
         with pytest.raises(InvalidInputError, match="ala<D>x<W>k<K>"):
             policy_config(bad)
 
