@@ -226,3 +226,32 @@ def test_task_transfer_pairs_arms_with_the_per_task_model_and_refuses_errored_ru
     assert rows["nn"]["vs_nn"]["points"] == 0.0 and rows["per-task"]["vs_nn"]["wins"] == 3
     with pytest.raises(SystemExit, match="1 greedy episodes errored"):
         tt._greedy_outcomes(folder("bad", "greedy", ref, error="boom"), 6)
+
+
+def test_robust_tuning_chooses_the_best_configuration_within_the_time_budget(
+    project_root, tmp_path, capsys
+):
+    import json
+
+    tuning = load_bench_module(project_root, "robust_tuning")
+    folder = tmp_path / "combined25"
+    folder.mkdir()
+
+    def line(policy: str, task: int, success: bool, decide: float) -> str:
+        return json.dumps(
+            {"policy": policy, "task_id": f"t{task}", "success": success, "decision_s": [decide]}
+        )
+
+    wins = {"la2x5": {0, 1}, "ala2x5k2": {0, 1, 2}, "ala2x5k4": {0, 1, 2}, "rla2x5k8": {0, 1, 2, 3}}
+    times = {"la2x5": 1.0, "ala2x5k2": 1.5, "ala2x5k4": 1.8, "rla2x5k8": 8.0}
+    lines = [line(p, t, t in won, times[p]) for p, won in wins.items() for t in range(4)]
+    (folder / "outcomes.jsonl").write_text("\n".join(lines) + "\n")
+    configs = ["ala2x5k4", "ala2x5k2", "rla2x5k8"]
+    chosen = tuning.report(folder, configs, 2.0)
+    # rla2x5k8 knots most but takes 8x the time; of the two within 2x, fewer members wins the tie
+    assert chosen.policy == "ala2x5k2" and (chosen.wins, chosen.losses) == (1, 0)
+    assert json.loads((folder / "choice.json").read_text())["chosen"] == "ala2x5k2"
+    text = capsys.readouterr().out
+    assert "| rla2x5k8 | 8 | 25 % | 4 | 4/4 = 100.0 % |" in text and "| 8.00 |" in text
+    assert tuning.baseline_of("ala2x5k4s50") == "la2x5"
+    assert tuning.report(folder, ["rla2x5k8"], 2.0) is None  # nothing within the budget
