@@ -34,6 +34,8 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from robustness import _outcomes  # noqa: E402
+
 from knotlab.core.experiments.bench.report import wilson_interval  # noqa: E402
 from knotlab.core.machine import machine_line  # noqa: E402
 from knotlab.core.selection.policies import policy_config  # noqa: E402
@@ -100,16 +102,6 @@ def choose(scores: list[ConfigScore], max_time: float) -> ConfigScore | None:
     best = max(s.successes for s in allowed)
     tied = [s for s in allowed if s.successes == best]
     return min(tied, key=lambda s: (s.members, scores.index(s)))
-
-
-def _outcomes(path: Path) -> dict[str, dict[str, dict]]:
-    out: dict[str, dict[str, dict]] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                rec = json.loads(line)
-                out.setdefault(rec["policy"], {})[rec["task_id"]] = rec
-    return out
 
 
 def report(folder: Path, configs: list[str], max_time: float) -> ConfigScore | None:

@@ -23,13 +23,14 @@ Shape suffix: a = demos (actions), k = rope nodes, m = members.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from knotlab.core.execution.memo import execute_with_memo
 from knotlab.core.selection.decision import Decision, Policy, StepContext
+from knotlab.core.selection.ensemble import EnsembleWorlds
 from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 
@@ -88,32 +89,17 @@ class AdaptiveLookaheadPolicy(Policy):
         spread_tag = "" if spread == 0.25 else f"s{round(100 * spread)}"
         self.name = f"ala{depth}x{width}k{members}{spread_tag}"
         self._searches = [LookaheadPolicy(model, depth, width) for _ in range(members)]
-        self._worlds: dict[tuple, list[RopeWorld]] = {}  # per model physics: members 1..k-1
+        self._ensemble = EnsembleWorlds(members, spread, seed)  # members 1..k-1
         self._totals_m = np.zeros(members)
         self._pending: _Prediction | None = None
 
     def _member_worlds(self, ctx: StepContext) -> list[RopeWorld]:
         """The worlds of members 1..k-1 for the context's model physics (made once)."""
-        from knotlab.core.world.mismatch import PhysicsParams, perturb_params
-        from knotlab.core.world.sim import GripperParams, RopeWorld
-
-        gripper = getattr(ctx.world, "gripper", GripperParams())
-        base = PhysicsParams(ctx.world.params, gripper)
-        key = (base.rope, base.gripper)
-        if key not in self._worlds:
-            worlds = []
-            for m in range(1, self.members):
-                member = perturb_params(base, self.spread, self.seed + m)
-                worlds.append(RopeWorld(member.rope, member.gripper))
-            self._worlds[key] = worlds
-        return self._worlds[key]
+        return self._ensemble.perturbed(ctx.world)
 
     def close(self) -> None:
         """Release the members' simulators."""
-        for worlds in self._worlds.values():
-            for world in worlds:
-                world.close()
-        self._worlds.clear()
+        self._ensemble.close()
 
     def _update(self, ctx: StepContext) -> np.ndarray:
         """Score the last step's predictions against the rope now observed; the errors (mm)."""
@@ -138,17 +124,12 @@ class AdaptiveLookaheadPolicy(Policy):
         planner = worlds[m]
         if m > 0:
             place_estimate(planner, estimate)
-        plan_ctx = StepContext(
-            planner,
-            ctx.cloud_n3,
-            ctx.scan,
-            ctx.featurizer,
-            ctx.transferer,
-            ctx.step_index,
-            ctx.steps_left,
-            ctx.memo if m == 0 else None,
-            ctx._phi_ad,
-            ctx.on_level if m == 0 else None,
+        own = m == 0  # the shared memo and the anytime reports are the agent's model's
+        plan_ctx = replace(
+            ctx,
+            world=planner,
+            memo=ctx.memo if own else None,
+            on_level=ctx.on_level if own else None,
         )
         decision = self._searches[m].choose(plan_ctx)
         t_search = time.perf_counter() - t0

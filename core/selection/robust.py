@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from knotlab.core.selection.decision import Decision, Policy, StepContext
+from knotlab.core.selection.ensemble import EnsembleWorlds
 from knotlab.core.selection.lookahead import LookaheadPolicy
 from knotlab.core.selection.qmodel import QModel
 
@@ -60,30 +62,15 @@ class RobustLookaheadPolicy(Policy):
         spread_tag = "" if spread == 0.25 else f"s{round(100 * spread)}"
         self.name = f"rla{depth}x{width}k{members}{suffix}{spread_tag}"
         self._searches = [LookaheadPolicy(model, depth, width) for _ in range(members)]
-        self._worlds: dict[tuple, list[RopeWorld]] = {}  # per model physics: members 1..k-1
+        self._ensemble = EnsembleWorlds(members, spread, seed)  # members 1..k-1
 
-    def _member_worlds(self, ctx: StepContext) -> list:
+    def _member_worlds(self, ctx: StepContext) -> list[RopeWorld]:
         """The worlds of members 1..k-1 for the context's model physics (made once)."""
-        from knotlab.core.world.mismatch import PhysicsParams, perturb_params
-        from knotlab.core.world.sim import GripperParams, RopeWorld
-
-        gripper = getattr(ctx.world, "gripper", GripperParams())
-        base = PhysicsParams(ctx.world.params, gripper)
-        key = (base.rope, base.gripper)
-        if key not in self._worlds:
-            worlds = []
-            for m in range(1, self.members):
-                member = perturb_params(base, self.spread, self.seed + m)
-                worlds.append(RopeWorld(member.rope, member.gripper))
-            self._worlds[key] = worlds
-        return self._worlds[key]
+        return self._ensemble.perturbed(ctx.world)
 
     def close(self) -> None:
         """Release the members' simulators."""
-        for worlds in self._worlds.values():
-            for world in worlds:
-                world.close()
-        self._worlds.clear()
+        self._ensemble.close()
 
     def choose(self, ctx: StepContext) -> Decision:
         """Run the lookahead in every member from the context's state; aggregate per action."""
@@ -97,17 +84,7 @@ class RobustLookaheadPolicy(Policy):
         for m, (world, search) in enumerate(zip(worlds, self._searches, strict=True)):
             if m > 0:
                 place_estimate(world, estimate)
-            member_ctx = StepContext(
-                world,
-                ctx.cloud_n3,
-                ctx.scan,
-                ctx.featurizer,
-                ctx.transferer,
-                ctx.step_index,
-                ctx.steps_left,
-                None,
-                ctx._phi_ad,
-            )
+            member_ctx = replace(ctx, world=world, memo=None, on_level=None)
             decisions.append(search.choose(member_ctx))
         ctx.world.restore(root)
         return self._aggregate(decisions, t0)
