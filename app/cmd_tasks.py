@@ -88,6 +88,7 @@ def run_scans(args: argparse.Namespace) -> int:
     from knotlab.app.options import check_input, task_of
     from knotlab.app.web.resources import load_resources
     from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.world.sim import RopeWorld
     from knotlab.labeling_db.store import open_store
 
     task, level = task_of(args), resolve_level(args)
@@ -110,12 +111,21 @@ def run_scans(args: argparse.Namespace) -> int:
         open_store(f"sqlite:///{tmp}/starts.db", create=True) as store,
     ):
         resources.register_starts(store, level)
-        clouds = [s.cloud_n3 for s in store.start_states_to_label()]
+        starts = store.start_states_to_label()
+        # Two clouds per start: the stored one (Suggest scores it) and the one a tab observes
+        # from the stored rope when it shows the start (it ranks that one; the store keeps
+        # clouds in float32, so the two differ in their last bits).
+        clouds = [s.cloud_n3 for s in starts]
+        nodes = [store.get_state(s.state_id).rope_nodes_k3 for s in starts]
     featurizer = (
         resources.agent.featurizer
         if model_path is None
         else resources.add_model(QModel.load(model_path), str(model_path)).featurizer
     )
+    with RopeWorld() as world:
+        for rope in nodes:
+            world.reset(np.asarray(rope, dtype=float))
+            clouds.append(featurizer.observe(world))
     for cloud in tqdm(clouds, desc="scanning starts", disable=args.no_progress):
         resources.start_scans.features(featurizer, cloud)
     resources.start_scans.save(out)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
+from typing import TypeAlias
 
 import numpy as np
 
@@ -45,12 +46,15 @@ from knotlab.core.outcomes import StepOutcome
 from knotlab.core.registration import ScanResult
 from knotlab.core.selection.labels import DeadEndState, LabelledStep
 from knotlab.core.selection.ranking import RankedDemo, rank_demos
+from knotlab.core.selection.summary_ranking import SummaryScan, summary_scan
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.sim import RopeWorld, SimSnapshot
 from knotlab.labeling_db.records import EpisodeInfo, StateProvenance
 from knotlab.labeling_db.store import Store
 
 FRAME_DT = 1.0 / 30.0  # s of simulated time between animation frames
+# A shown state's scan: in full, or from a stored summary with its candidates registered.
+ShownScan: TypeAlias = ScanResult | SummaryScan
 # How a try is simulated: (state, cloud, demo index, frame recorder) -> outcome.
 Simulate = Callable[[SimSnapshot, np.ndarray, int, FrameRecorder], ActionOutcome]
 
@@ -97,7 +101,7 @@ class LabelSession:
         self.snapshot: SimSnapshot | None = None
         self.nodes_k3: np.ndarray | None = None  # the rope being labelled (before any try)
         self.cloud_n3: np.ndarray | None = None
-        self.scan: ScanResult | None = None
+        self.scan: ShownScan | None = None
         self.ranking: RankingModel = resources.current
         self.candidates: list[Candidate] = []
         self.selected: int | None = None
@@ -220,7 +224,7 @@ class LabelSession:
         if ahead is not None and ahead.fits(self.cloud_n3, self.ranking):
             phi, scan = ahead.result()  # scanned while the expert judged the try
         else:
-            phi, scan = _features(self.ranking, self.cloud_n3)
+            phi, scan = self._scan_state(self.cloud_n3)
         self.scan = scan
         ranked = rank_demos(scan, phi, self.ranking.model, self.res.library.keys, self.res.top_k)
         self.candidates = [self._candidate(r, scan) for r in ranked]
@@ -234,7 +238,20 @@ class LabelSession:
         if not self.candidates:
             self.message = "no demo registers onto this rope: press R for another start"
 
-    def _candidate(self, ranked: RankedDemo, scan: ScanResult) -> Candidate:
+    def _scan_state(self, cloud_n3: np.ndarray) -> tuple[np.ndarray | None, ShownScan]:
+        """(phi or None, scan) of a state: a start the shipped start scans hold is ranked from
+        its summary and only its shown candidates are registered (the full scan's numbers, bit
+        for bit, on the CPU kind they were made on); any other state is scanned in full."""
+        quick = summary_scan(
+            self.res.start_scans,
+            self.ranking.featurizer,
+            self.ranking.model,
+            cloud_n3,
+            self.res.top_k,
+        )
+        return quick if quick is not None else _features(self.ranking, cloud_n3)
+
+    def _candidate(self, ranked: RankedDemo, scan: ShownScan) -> Candidate:
         seg = self.res.library[ranked.demo_index]
         traj = seg.trajectory
         f = scan.f(ranked.demo_index)

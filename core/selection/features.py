@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -278,6 +279,14 @@ class LibraryFeaturizer:
         return self.registrar.scan(
             cloud_n3, self._clouds, key=self.library_hash, params=self.params, timings=timings
         )
+
+    def scan_demos(self, cloud_n3: np.ndarray, demos: Sequence[int]) -> ScanResult:
+        """Register the cloud against these demos only (rows in the order given): each row is
+        the full scan's registration of that demo, bit for bit (a demo's registration does not
+        depend on the others). A registrar of its own, so the library's prepared side stays
+        in the shared one's cache."""
+        registrar = LibraryRegistrar(self.params)
+        return registrar.scan(cloud_n3, [self._clouds[int(a)] for a in demos], params=self.params)
 
     @property
     def memo_stats(self) -> tuple[int, int]:

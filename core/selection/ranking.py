@@ -13,7 +13,6 @@ from typing import Protocol
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.registration import ScanResult
 from knotlab.core.selection.qmodel import QModel
 
 
@@ -62,7 +61,7 @@ def rank_order(scores_a: np.ndarray) -> np.ndarray:
 
 
 def rank_demos(
-    scan: ScanResult,
+    scan: RegisteredDemos,
     phi_ad: np.ndarray | None,
     model: QModel | None,
     keys: tuple[str, ...],

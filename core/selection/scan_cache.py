@@ -11,8 +11,9 @@ identity, and a file written by `save` ships precomputed summaries of a level's 
 A summary equals a live scan's bit for bit on the CPU kind it was made on (the file records it)
 with one BLAS thread, as every knotlab process runs; another kernel (AVX2 against AVX-512) or
 another BLAS thread count moves costs by up to ~1e-3 relative (TPS-RPM's iterations carry the
-last bits on). Summaries rank "what to label next" only; every ranking a labeller is shown, and
-stored with a label, is computed live.
+last bits on). Summaries rank "what to label next", and a start the app shows when they were made
+on this CPU kind (`summary_ranking.py`: the full scan's ranking, bit for bit); every other
+ranking a labeller is shown is computed from a live scan.
 """
 
 from __future__ import annotations

@@ -23,11 +23,19 @@ def test_the_shipped_scans_cover_every_start_the_app_stores(level, tmp_path) -> 
         defaults.library_path(), defaults.task_set_path(level, "train"), top_k=5
     )
     note = resources.load_start_scans(defaults.scans_path(level, "train"))
-    assert note.startswith("300 precomputed start scans"), note
+    assert note.startswith("600 precomputed start scans"), note
+    from knotlab.core.world.sim import RopeWorld
+
     with open_store(f"sqlite:///{tmp_path}/s.db", create=True) as store:
         resources.register_starts(store, level)
-        clouds = [s.cloud_n3 for s in store.start_states_to_label()]
-    assert all(resources.start_scans.get(c) is not None for c in clouds)
+        starts = store.start_states_to_label()
+        stored = [s.cloud_n3 for s in starts]  # what Suggest scores
+        nodes = [store.get_state(s.state_id).rope_nodes_k3 for s in starts]
+    assert all(resources.start_scans.get(c) is not None for c in stored)
+    with RopeWorld() as world:  # what a tab observes when it shows the start, and ranks
+        for rope in nodes[:: len(nodes) // 20]:
+            world.reset(np.asarray(rope, dtype=float))
+            assert resources.start_scans.get(resources.agent.observe(world)) is not None
 
 
 def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
@@ -65,9 +73,9 @@ def test_tasks_scans_refuses_to_overwrite_and_writes_elsewhere(tmp_path, capsys)
     out = tmp_path / "scans.npz"
     argv = ["tasks", "scans", "--library", str(lib), "--out", str(out), "--no-progress"]
     assert cli.main(argv) == 0
-    assert "wrote 300 start-scan summaries of main" in capsys.readouterr().out
+    assert "wrote 600 start-scan summaries of main" in capsys.readouterr().out
     resources = load_resources(lib, defaults.task_set_path("main", "train"), 1)
-    assert resources.load_start_scans(out).startswith("300 precomputed")
+    assert resources.load_start_scans(out).startswith("600 precomputed")
     assert cli.main(argv) == 2  # its own file too: only with --force
     assert cli.main([*argv, "--force"]) == 0
 

@@ -288,3 +288,39 @@ def test_undo_and_resume_reproduce_the_ranking_shown_bit_for_bit(tmp_path, store
     step = mine.steps[1]
     assert list(step.candidates) == [k for k, _, _ in shown]
     assert np.allclose(step.candidate_scores_c, [v for _, v, _ in shown], rtol=1e-6)
+
+
+def test_a_fresh_start_is_ranked_from_the_shipped_start_scans_as_a_full_scan_would(
+    tmp_path, resources
+):
+    from knotlab.app import defaults
+    from knotlab.app.web.resources import load_resources
+    from knotlab.core.machine import vector_width
+    from knotlab.core.registration import ScanResult
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.selection.summary_ranking import SummaryScan
+    from knotlab.labeling_db.store import open_store
+
+    scanned = load_resources(defaults.LIBRARY_PATH, defaults.task_set_path("main", "train"), 5)
+    scanned.use(scanned.add_model(QModel.load(defaults.MODEL_PATH), "shipped").version)
+    assert "600 precomputed" in scanned.load_start_scans(defaults.scans_path("main", "train"))
+    views, scans = [], []
+    for res, name in ((scanned, "quick"), (resources, "full")):
+        store = open_store(f"sqlite:///{tmp_path / name}.db")
+        res.register_starts(store, "main")
+        misses = res.current.featurizer.memo_stats[1]
+        s = _session(store, res)
+        views.append(s.view())
+        scans.append((s.scan, res.current.featurizer.memo_stats[1] - misses))
+        s.close()
+        store.close()
+    quick, full = views
+    assert quick.task_id == full.task_id  # the same start, claimed first in both stores
+    if scanned.start_scans.made_on != vector_width():  # summaries of another CPU kind: unused
+        assert isinstance(scans[0][0], ScanResult)
+        return
+    assert isinstance(scans[0][0], SummaryScan) and scans[0][1] == 0  # no library scan made
+    assert isinstance(scans[1][0], ScanResult)  # (maybe from the memo of an earlier test)
+    assert [c.ranked for c in quick.candidates] == [c.ranked for c in full.candidates]
+    for a, b in zip(quick.candidates, full.candidates, strict=True):
+        assert np.array_equal(a.positions_gt3, b.positions_gt3)  # the warped paths drawn
