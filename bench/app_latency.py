@@ -149,8 +149,18 @@ def main() -> int:
     p.add_argument("--tries", type=int, default=5, help="tries measured per setting")
     p.add_argument("--think", type=float, default=2.0, help="s the 3 other experts wait per action")
     p.add_argument("--sim-workers", type=int, default=2, help="try processes of the app")
+    p.add_argument(
+        "--full-scans",
+        action="store_true",
+        help="rank every shown start from a full library scan (the app before summary ranking)",
+    )
     args = p.parse_args()
     print(machine_line())
+    if args.full_scans:  # an A/B switch for this measurement only
+        from knotlab.app.web import session
+
+        session.summary_scan = lambda *_a, **_k: None
+    print("shown starts ranked from:", "full scans" if args.full_scans else "start-scan summaries")
     from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:

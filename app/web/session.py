@@ -84,6 +84,9 @@ class LabelSession:
         self._stop_model = threading.Event()  # the labeller asked the model to stop driving
         self._model_chosen: list[str] = []  # demos the model executed from this start
         self._passed_over: set[int] = set()  # starts the model tied, or R left, in model mode
+        # Starts R left in this tab: not offered again while another start is free (else R
+        # would swap between two ropes), then offered again.
+        self._skipped: set[int] = set()
         self._in_step = False  # a drive step is simulating (outside the lock)
         self._placed_from: np.ndarray | None = None  # the rope the model's last state came from
         self._drive_version: str | None = None  # the model whose choices moved this rope
@@ -166,8 +169,11 @@ class LabelSession:
             source="human",
             prefer=self.prefer() if self.prefer is not None else (),
             overlap=self.res.overlap,
-            exclude=sorted(self._passed_over) if self.model_mode else (),
+            exclude=sorted(self._skipped | (self._passed_over if self.model_mode else set())),
         )
+        if info is None and self._skipped:  # only the starts R left are free: offer them again
+            self._skipped.clear()
+            return self._claim_next()
         if info is None:
             self.phase = Phase.NO_STARTS
             self.episode, self.snapshot, self.candidates = None, None, []
@@ -239,15 +245,15 @@ class LabelSession:
             self.message = "no demo registers onto this rope: press R for another start"
 
     def _scan_state(self, cloud_n3: np.ndarray) -> tuple[np.ndarray | None, ShownScan]:
-        """(phi or None, scan) of a state: a start the shipped start scans hold is ranked from
-        its summary and only its shown candidates are registered (the full scan's numbers, bit
-        for bit, on the CPU kind they were made on); any other state is scanned in full."""
+        """(phi or None, scan) of a state: one scanned lately from its kept scan; a start the
+        shipped start scans hold from its summary, only its shown candidates registered (the
+        full scan's numbers, bit for bit, on the CPU kind they were made on); any other state
+        from a full scan."""
+        featurizer = self.ranking.featurizer
+        if featurizer.scanned_lately(cloud_n3):  # e.g. R back to a start shown a moment ago
+            return _features(self.ranking, cloud_n3)
         quick = summary_scan(
-            self.res.start_scans,
-            self.ranking.featurizer,
-            self.ranking.model,
-            cloud_n3,
-            self.res.top_k,
+            self.res.start_scans, featurizer, self.ranking.model, cloud_n3, self.res.top_k
         )
         return quick if quick is not None else _features(self.ranking, cloud_n3)
 
@@ -595,9 +601,10 @@ class LabelSession:
                 raise SessionError("the model is driving this rope: stop it first (S)")
             old = self.episode
             self.message = ""  # what was said about the old rope is not about the new one
-            if self.model_mode and old is not None and old.start_state_id is not None:
+            if old is not None and old.start_state_id is not None:
                 # The model would drive it to the same state again: go on to other starts.
-                self._passed_over.add(old.start_state_id)
+                # Without the model, the next R should not bring it straight back either.
+                (self._passed_over if self.model_mode else self._skipped).add(old.start_state_id)
             # Claim the next start while this one is still held, so R never hands back the
             # rope just abandoned (unless it is the only one left).
             self._claim_next()

@@ -111,6 +111,10 @@ class _ScanMemo:
             self._items.move_to_end(key)
             return item
 
+    def __contains__(self, key: str) -> bool:
+        with self._lock:  # not counted: a look, not a use
+            return key in self._items
+
     def put(self, key: str, scan: ScanResult) -> list:
         with self._lock:
             item = self._items.setdefault(key, [scan, None])
@@ -279,6 +283,11 @@ class LibraryFeaturizer:
         return self.registrar.scan(
             cloud_n3, self._clouds, key=self.library_hash, params=self.params, timings=timings
         )
+
+    def scanned_lately(self, cloud_n3: np.ndarray) -> bool:
+        """Whether this exact cloud's scan is among the recent states kept (a scan of it is then
+        free)."""
+        return cloud_digest(cloud_n3) in self._memo
 
     def scan_demos(self, cloud_n3: np.ndarray, demos: Sequence[int]) -> ScanResult:
         """Register the cloud against these demos only (rows in the order given): each row is

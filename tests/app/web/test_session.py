@@ -143,6 +143,35 @@ def test_resample_abandons_and_close_releases_an_untouched_start(store, resource
     assert store.progress("ann").episodes_abandoned == 2
 
 
+def test_new_rope_moves_on_to_other_starts_then_offers_the_left_ones_again(
+    tmp_path, store, resources
+):
+    import copy
+
+    from knotlab.labeling_db.store import open_store
+
+    s = _session(store, resources)
+    seen = [s.view().task_id]
+    for _ in range(4):  # R keeps bringing starts not seen in this tab (it used to swap two)
+        s.resample()
+        seen.append(s.view().task_id)
+    assert len(set(seen)) == 5, seen
+    s.close()
+    few = copy.copy(resources)
+    few.tasks = resources.tasks[:3]  # a store with three starts only
+    small = open_store(f"sqlite:///{tmp_path / 'three.db'}")
+    few.register_starts(small, "main")
+    t = _session(small, few, "dee")
+    order = [t.view().task_id]
+    for _ in range(5):
+        t.resample()
+        order.append(t.view().task_id)
+    assert len(set(order[:3])) == 3  # each start once ...
+    assert set(order[3:]) <= set(order[:3])  # ... then the ones left are offered again
+    t.close()
+    small.close()
+
+
 def test_two_sessions_claim_different_starts(store, resources):
     a, b = _session(store, resources, "ann"), _session(store, resources, "bob")
     assert a.view().task_id != b.view().task_id
