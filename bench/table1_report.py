@@ -25,7 +25,7 @@ from pathlib import Path
 
 from scipy.stats import binomtest
 
-from knotlab.core.experiments.bench import PAPER_TABLE1, wilson_interval
+from knotlab.core.experiments.bench import wilson_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ("nn", "greedy", "la1x10", "la2x5", "oracle")
@@ -151,6 +151,16 @@ def _paired_table(runs: dict[str, list[dict]], policies: list[str]) -> None:
     print()
 
 
+def _reference_rates(out: Path) -> dict[str, float]:
+    """The published rates of the run's task (the paper's Table I for the overhand knot; none
+    for another task, whose runs record their task)."""
+    from knotlab.core.tasks import DEFAULT_TASK, get_task
+
+    results = out / "results.json"
+    task = json.loads(results.read_text()).get("task") if results.exists() else None
+    return dict(get_task(task or DEFAULT_TASK).reference_rates)
+
+
 def main() -> int:
     """Print per level: the table (with a first-K column), total episode time, paired tests."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -174,10 +184,11 @@ def main() -> int:
         )
         print("|---|---|---|---|---|---|")
         policies = sorted(runs, key=lambda p: ORDER.index(p) if p in ORDER else 99)
+        reference = _reference_rates(out)
         for policy in policies:
             recs = runs[policy]
             first = [r for r in recs if r.get("task_index", 0) < args.first]
-            paper = PAPER_TABLE1.get(policy)
+            paper = reference.get(policy)
             decide = _mean([t for r in recs for t in r.get("decision_s", [])])
             wall = _mean([r["wall_s"] for r in recs])
             print(
