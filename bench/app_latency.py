@@ -2,10 +2,12 @@
 
 Prints: page ready (goto until the first state's candidates are in the scene); new state to
 candidates drawn (R: claim a start, observe, scan the library, rank, draw; median and p95);
-Enter to the first animation frame; and the same two with 3 more tabs labelling at once
-(driven server-side by threads: try, judge, next, with --think s between their actions).
-Then Suggest over all unlabelled starts (first click, then again). Targets: candidates drawn within
-0.3 s median, 0.5 s p95; page ready within 3 s; Suggest within 10 s.
+Enter to the first animation frame; accept to the next state drawn; Suggest over all unlabelled
+starts (first click, then again). Then, with 3 more labellers at once (driven server-side by
+threads: try, judge, next, with --think s between their actions; tabs of the same browser, or
+each in its own browser with --own-browsers): new state, Enter, accept, Suggest and a first
+visit's page ready. Targets: candidates drawn within 0.3 s median, 0.5 s p95; accept within 1 s;
+page ready within 3 s; Suggest within 10 s; with 4 labellers the same within 2x.
 Usage: python bench/app_latency.py [--samples 20] [--tries 5]
 """
 
@@ -154,6 +156,12 @@ def main() -> int:
         action="store_true",
         help="rank every shown start from a full library scan (the app before summary ranking)",
     )
+    p.add_argument(
+        "--own-browsers",
+        action="store_true",
+        help="the 3 other labellers each in their own Chromium (as on their own machines), not"
+        " as tabs of the measured labeller's browser (whose one software-GL process renders all)",
+    )
     args = p.parse_args()
     print(machine_line())
     if args.full_scans:  # an A/B switch for this measurement only
@@ -200,7 +208,15 @@ def main() -> int:
                 _row("Suggest, all unlabelled starts, first click", suggest[:1]),
                 _row("Suggest again (same model)", suggest[1:]),
             ]
-            others = [open_tab(browser, app, f"busy{i}") for i in range(3)]
+            hosts = (
+                [pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS) for _ in range(3)]
+                if args.own_browsers
+                else [browser] * 3
+            )
+            print(
+                "3 other labellers:", "own browsers" if args.own_browsers else "tabs of one browser"
+            )
+            others = [open_tab(hosts[i], app, f"busy{i}") for i in range(3)]
             stop = threading.Event()
             threads = [
                 threading.Thread(target=_busy_labeller, args=(o, stop, args.think), daemon=True)
@@ -215,10 +231,24 @@ def main() -> int:
                 ),
                 _row("  server share (session + draw calls), 4 tabs", SERVER["4"]),
                 _row("Enter to first animation frame, 4 tabs", measure_try(tab, args.tries)),
+                _row("accept (Y) to next state drawn, 4 tabs", measure_accept(tab, args.tries)),
             ]
+            suggest = measure_suggest(tab, app, 2)
+            rows.append(_row("Suggest again, 4 tabs", suggest))
+            busy_ready = []
+            for i in range(3):
+                t0 = time.perf_counter()
+                extra = open_tab(browser, app, f"late{i}")  # a new browser: types its name
+                extra.page.wait_for_function(drawn, timeout=30000)
+                busy_ready.append(time.perf_counter() - t0)
+                extra.context.close()
+            rows.append(_row("page ready, first visit, 3 others labelling", busy_ready))
             stop.set()
             for t in threads:
                 t.join(30)
+            for host in hosts:
+                if host is not browser:
+                    host.close()
         finally:
             app.stop()
             browser.close()

@@ -25,7 +25,13 @@ import viser
 
 from knotlab.app import defaults
 from knotlab.app.options import fresh_file, in_shipped_place
-from knotlab.app.web.geometry import hull_points, tube_faces, tube_vertices
+from knotlab.app.web.frame_painter import (
+    MAX_PAINT_HZ,
+    FramePainter,
+    GripperLook,
+    next_frame_index,
+)
+from knotlab.app.web.geometry import hull_points
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.experiments.playback import (
     PlaybackEpisode,
@@ -187,6 +193,7 @@ class PlaybackPanel:
         self._playing = threading.Event()
         self._player: threading.Thread | None = None
         self._updating = False
+        self._painter: FramePainter | None = None  # the replay's rope and grippers, drawn in place
         self.export_dir = EXPORT_DIR
         self._exported: set[Path] = set()  # the files this panel wrote (it may rewrite those)
         self.load_button.on_click(lambda _e: self.load())
@@ -280,16 +287,28 @@ class PlaybackPanel:
         self._player.start()
 
     def _play(self) -> None:
+        """Play at the chosen speed by the wall clock; frames that fall due while one is being
+        drawn are skipped (at most MAX_PAINT_HZ frames a second are sent)."""
         replay = self.replay
         assert replay is not None
-        i = self.frame
-        while self._playing.is_set() and i < len(replay) - 1:
-            i += 1
+        i, last = self.frame, len(replay) - 1
+        speed = self._speed
+        t_wall0 = time.perf_counter() - i * FRAME_DT / speed
+        last_paint = time.perf_counter()
+        while self._playing.is_set() and i < last:
+            if self._speed != speed:  # the speed changed: go on from here at the new one
+                speed = self._speed
+                t_wall0 = time.perf_counter() - i * FRAME_DT / speed
+            i = next_frame_index(
+                lambda k: k * FRAME_DT, i, last + 1, t_wall0, speed, time.perf_counter()
+            )
+            due = max(t_wall0 + i * FRAME_DT / speed, last_paint + 1.0 / MAX_PAINT_HZ)
+            time.sleep(max(0.0, due - time.perf_counter()))
             self._updating = True
             self.timeline.value = i  # type: ignore[misc]
             self._updating = False
             self.show(i)
-            time.sleep(FRAME_DT / self._speed)
+            last_paint = time.perf_counter()
         self._playing.clear()
 
     def show(self, i: int) -> None:
@@ -298,24 +317,15 @@ class PlaybackPanel:
         if replay is None or episode is None or not len(replay):
             return
         i = int(np.clip(i, 0, len(replay) - 1))
-        nodes = replay.nodes_fk3[i]
-        scene = self.client.scene
-        with self.client.atomic():
-            scene.add_mesh_simple(
-                "/playback/rope",
-                tube_vertices(nodes, 0.01),
-                tube_faces(len(nodes), 12),
-                color=(196, 120, 60),
+        if self._painter is None:
+            self._painter = FramePainter(
+                self.client,
+                "/playback",
+                rope_radius=0.01,
+                rope_colour=(196, 120, 60),
+                look=GripperLook((0, 158, 115), open_radius=0.011, closed_radius=0.016),
             )
-            for g, name in enumerate(("left", "right")):
-                held = bool(replay.closed_fg[i, g])
-                p = replay.grippers_fg3[i, g]
-                scene.add_icosphere(
-                    f"/playback/{name}",
-                    radius=0.016 if held else 0.011,
-                    color=(0, 158, 115) if held else (60, 60, 60),
-                    position=(float(p[0]), float(p[1]), float(p[2])),
-                )
+        self._painter.paint(replay.nodes_fk3[i], replay.grippers_fg3[i], replay.closed_fg[i])
         step = int(replay.step_f[i])
         s = episode.steps[step]
         score = "-" if s.score is None or not np.isfinite(s.score) else f"{s.score:.3f}"
@@ -366,4 +376,5 @@ class PlaybackPanel:
         """Stop playing and show the labelling view again."""
         self._playing.clear()
         self.client.scene.remove_by_name("/playback")
+        self._painter = None
         self._set_label_visible(True)

@@ -17,6 +17,12 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 import viser
 
+from knotlab.app.web.frame_painter import (
+    MAX_PAINT_HZ,
+    FramePainter,
+    GripperLook,
+    next_frame_index,
+)
 from knotlab.app.web.geometry import frame_points, pick_candidate, tube_faces, tube_vertices
 from knotlab.app.web.session_records import Candidate, Phase, SessionView
 from knotlab.core.world.frames import FrameRecorder
@@ -427,36 +433,39 @@ class SceneDrawer:
         self.first_frame_at = None
         colour = rank_colour(rank)
 
+        painter = FramePainter(
+            self.client,
+            "/label",
+            rope_radius=ROPE_RADIUS,
+            rope_colour=ROPE_COLOUR,
+            look=GripperLook(colour),
+            active_g=active_g,
+        )
+
         def play() -> None:
-            i, t_wall0 = 0, None
+            i, t_wall0, last_paint = -1, 0.0, 0.0  # i: the frame last painted
             while not stop.is_set():
-                if i >= len(recorder):
+                n = len(recorder)
+                if i + 1 >= n:
                     if recorder.finished:
                         break
                     time.sleep(0.005)
                     continue
+                if i < 0:
+                    t_wall0 = time.perf_counter() - recorder.frame(0)[0] / speed
+                i = next_frame_index(
+                    lambda k: recorder.frame(k)[0], i, n, t_wall0, speed, time.perf_counter()
+                )
                 t_sim, nodes, grippers, closed = recorder.frame(i)
-                if t_wall0 is None:
-                    t_wall0 = time.perf_counter() - t_sim / speed
-                due = t_wall0 + t_sim / speed
+                due = max(t_wall0 + t_sim / speed, last_paint + 1.0 / MAX_PAINT_HZ)
                 wait = due - time.perf_counter()
                 if wait > 0:
                     stop.wait(wait)
-                with self.client.atomic():
-                    self.draw_rope(nodes)
-                    for g, name in enumerate(("left", "right")):
-                        if not active_g[g]:
-                            continue
-                        self.scene.add_icosphere(
-                            f"/label/grippers/{name}",
-                            radius=0.018 if closed[g] else 0.012,
-                            color=colour if closed[g] else (60, 60, 60),
-                            position=_xyz(grippers[g]),
-                        )
+                painter.paint(nodes, grippers, closed)
                 self.client.flush()
+                last_paint = time.perf_counter()
                 if self.first_frame_at is None:
-                    self.first_frame_at = time.perf_counter()
-                i += 1
+                    self.first_frame_at = last_paint
 
         thread = threading.Thread(target=play, name=f"animate-{self.client.client_id}", daemon=True)
         self._anim_thread = thread
