@@ -87,9 +87,14 @@ def measure_accept(tab, n: int) -> list[float]:
     return out
 
 
-def measure_try(tab, n: int) -> list[float]:
-    """Seconds from Enter to the first animation frame in the browser (a gripper drawn)."""
+SIMULATED: dict[str, list[float]] = {}  # server side: Enter to the first simulated frame sent
+
+
+def measure_try(tab, n: int, label: str = "") -> list[float]:
+    """Seconds from Enter to the first animation frame in the browser (a gripper drawn: the
+    path's start at once, then the simulated frames)."""
     out = []
+    simulated = SIMULATED.setdefault(label, [])
     for _ in range(n):
         tab.focus_canvas()
         t0 = time.perf_counter()
@@ -101,6 +106,7 @@ def measure_try(tab, n: int) -> list[float]:
         )
         out.append(time.perf_counter() - t0)
         wait_until(lambda: tab.session.view().phase.value == "judging", 60, "try end")
+        simulated.append(tab.server_tab.timings.get("try_to_first_frame_s", float("nan")))
         tab.page.keyboard.press("r")
         wait_until(lambda: tab.session.view().phase.value == "choosing", 20, "next")
     return out
@@ -200,7 +206,8 @@ def main() -> int:
                     measure_new_state(tab, args.samples, "1"),
                 ),
                 _row("  server share (session + draw calls), 1 tab", SERVER["1"]),
-                _row("Enter to first animation frame, 1 tab", measure_try(tab, args.tries)),
+                _row("Enter to first animation frame, 1 tab", measure_try(tab, args.tries, "1")),
+                _row("  first simulated frame sent (server), 1 tab", SIMULATED["1"]),
                 _row("accept (Y) to next state drawn, 1 tab", measure_accept(tab, args.tries)),
             ]
             suggest = measure_suggest(tab, app, 3)
@@ -230,7 +237,8 @@ def main() -> int:
                     measure_new_state(tab, args.samples, "4"),
                 ),
                 _row("  server share (session + draw calls), 4 tabs", SERVER["4"]),
-                _row("Enter to first animation frame, 4 tabs", measure_try(tab, args.tries)),
+                _row("Enter to first animation frame, 4 tabs", measure_try(tab, args.tries, "4")),
+                _row("  first simulated frame sent (server), 4 tabs", SIMULATED["4"]),
                 _row("accept (Y) to next state drawn, 4 tabs", measure_accept(tab, args.tries)),
             ]
             suggest = measure_suggest(tab, app, 2)

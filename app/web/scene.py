@@ -420,11 +420,14 @@ class SceneDrawer:
         rank: int,
         active_g: tuple[bool, bool] = (True, True),
         speed: float = PLAYBACK_SPEED,
+        start: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> threading.Thread:
         """Play the recorder's frames as they arrive (``speed`` x simulated time).
 
         Only the grippers the trajectory uses (``active_g``) are drawn; the cloud of the state
-        before the try is hidden (it no longer describes the rope).
+        before the try is hidden (it no longer describes the rope). ``start`` (the rope's nodes,
+        the trajectory's first gripper positions) is drawn at once, grippers open: the moment
+        before the first grasp, shown while the simulation waits for a free worker.
         """
         self.stop_animation()
         self.scene.remove_by_name("/label/cloud")
@@ -442,8 +445,14 @@ class SceneDrawer:
             active_g=active_g,
         )
 
+        last_start = 0.0
+        if start is not None:
+            painter.paint(start[0], start[1], np.zeros(2, dtype=bool))
+            self.client.flush()
+            last_start = time.perf_counter()
+
         def play() -> None:
-            i, t_wall0, last_paint = -1, 0.0, 0.0  # i: the frame last painted
+            i, t_wall0, last_paint = -1, 0.0, last_start  # i: the frame last painted
             while not stop.is_set():
                 n = len(recorder)
                 if i + 1 >= n:

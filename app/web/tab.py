@@ -210,7 +210,10 @@ class LabelTab:
             self.panels.show(trying)
         cand = session.candidate(view.selected)
         active = (bool(cand.closed_gt[0].any()), bool(cand.closed_gt[1].any()))
-        self.drawer.animate(recorder, view.selected, active)
+        start = None
+        if view.rope_nodes_k3 is not None:
+            start = (view.rope_nodes_k3, cand.positions_gt3[:, 0])
+        self.drawer.animate(recorder, view.selected, active, start=start)
         try:
             session.try_selected(recorder)
         except SessionError as exc:
@@ -339,7 +342,11 @@ class LabelTab:
                 self.panels.show(view)
             recorder = FrameRecorder(FRAME_DT)
             active = (bool(chosen.closed_gt[0].any()), bool(chosen.closed_gt[1].any()))
-            anim = self.drawer.animate(recorder, chosen.ranked.rank, active, speed=MODEL_SPEED)
+            nodes = view.rope_nodes_k3
+            start = None if nodes is None else (nodes, chosen.positions_gt3[:, 0])
+            anim = self.drawer.animate(
+                recorder, chosen.ranked.rank, active, speed=MODEL_SPEED, start=start
+            )
             try:
                 outcome = session.drive_step(recorder)
             except Exception as exc:

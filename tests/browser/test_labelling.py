@@ -105,6 +105,43 @@ def test_try_then_accept_stores_the_label(tabs, app):
     tab.screenshot("after_accept")
 
 
+def test_enter_draws_the_grippers_at_the_paths_start_before_the_simulation_runs(tabs):
+    """With every simulation worker busy a try waits; Enter still shows at once where it starts
+    (the rope as shown, the used grippers open at the path's first point)."""
+    tab = tabs("gil")
+    session = tab.session
+    real, gate = session._simulate, threading.Event()
+    assert real is not None
+
+    def busy_pool(*args, **kwargs):  # the real simulation, started once a worker is free
+        gate.wait(30)
+        return real(*args, **kwargs)
+
+    session._simulate = busy_pool
+    try:
+        view = session.view()
+        cand = view.candidates[0]
+        used = [g for g in range(2) if cand.closed_gt[g].any()]
+        tab.press("Enter")
+        name = f"/label/grippers/{('left', 'right')[used[0]]}"
+        pos = wait_until(  # where the browser holds a node's pose (viser's own test hook)
+            lambda: tab.page.evaluate(
+                "(n) => { const m = window.__viserMutable; const p = m && m.nodePoseData[n];"
+                " return p && p.position; }",
+                name,
+            ),
+            10,
+            "the grippers drawn while the simulation waits",
+        )
+        assert not gate.is_set() and session.view().phase is Phase.TRYING
+        assert np.allclose(pos, cand.positions_gt3[used[0], 0], atol=1e-6)
+        assert _scene_has(tab.page, f"{name}/open")
+    finally:
+        gate.set()
+        session._simulate = real
+    wait_until(lambda: session.view().phase is Phase.JUDGING, 60, "the try to finish")
+
+
 def test_reject_greys_out_and_dead_end_is_stored(tabs, app):
     tab = tabs("dee")
     tab.press("Enter")
