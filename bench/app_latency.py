@@ -129,6 +129,22 @@ def measure_suggest(tab, app, n: int) -> list[float]:
     return out
 
 
+DRAWN_JS = (
+    "() => window.__viserSceneTree &&"
+    " window.__viserSceneTree.getState()['/label/candidates/1/label']"
+)
+
+
+def _page_ready(times: list[float], open_it):
+    """Open a tab (``open_it``: a new browser types its name, a known one is remembered), wait
+    until its first state's candidates are drawn, append the seconds to ``times``."""
+    t0 = time.perf_counter()
+    tab = open_it()
+    tab.page.wait_for_function(DRAWN_JS, timeout=30000)
+    times.append(time.perf_counter() - t0)
+    return tab
+
+
 def _busy_labeller(tab, stop: threading.Event, think: float) -> None:
     """Another expert: try, judge, next; ``think`` s between actions (0: flat out)."""
     s = tab.server_tab
@@ -180,22 +196,14 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         app = start_app(f"sqlite:///{Path(tmp) / 'latency.db'}", sim_workers=args.sim_workers)
-        drawn = (
-            "() => window.__viserSceneTree &&"
-            " window.__viserSceneTree.getState()['/label/candidates/1/label']"
-        )
         try:
             first, again = [], []
             for i in range(3):
-                t0 = time.perf_counter()
-                tab = open_tab(browser, app, f"probe{i}")  # a new browser: types its name
-                tab.page.wait_for_function(drawn, timeout=20000)
-                first.append(time.perf_counter() - t0)
+                tab = _page_ready(first, lambda i=i: open_tab(browser, app, f"probe{i}"))
                 tab.page.close()
-                t0 = time.perf_counter()
-                tab = open_tab(browser, app, None, context=tab.context)  # name remembered
-                tab.page.wait_for_function(drawn, timeout=20000)
-                again.append(time.perf_counter() - t0)
+                tab = _page_ready(
+                    again, lambda c=tab.context: open_tab(browser, app, None, context=c)
+                )
                 if i < 2:
                     tab.context.close()
             rows = [
@@ -243,13 +251,10 @@ def main() -> int:
             ]
             suggest = measure_suggest(tab, app, 2)
             rows.append(_row("Suggest again, 4 tabs", suggest))
-            busy_ready = []
+            busy_ready: list[float] = []
             for i in range(3):
-                t0 = time.perf_counter()
-                extra = open_tab(browser, app, f"late{i}")  # a new browser: types its name
-                extra.page.wait_for_function(drawn, timeout=30000)
-                busy_ready.append(time.perf_counter() - t0)
-                extra.context.close()
+                late = _page_ready(busy_ready, lambda i=i: open_tab(browser, app, f"late{i}"))
+                late.context.close()
             rows.append(_row("page ready, first visit, 3 others labelling", busy_ready))
             stop.set()
             for t in threads:
