@@ -417,24 +417,25 @@ class SceneDrawer:
     def animate(
         self,
         recorder: FrameRecorder,
-        rank: int,
-        active_g: tuple[bool, bool] = (True, True),
+        cand: Candidate,
+        rope_nodes_k3: np.ndarray | None,
         speed: float = PLAYBACK_SPEED,
-        start: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> threading.Thread:
-        """Play the recorder's frames as they arrive (``speed`` x simulated time).
+        """Play the recorder's frames of ``cand``'s execution as they arrive (``speed`` x
+        simulated time).
 
-        Only the grippers the trajectory uses (``active_g``) are drawn; the cloud of the state
-        before the try is hidden (it no longer describes the rope). ``start`` (the rope's nodes,
-        the trajectory's first gripper positions) is drawn at once, grippers open: the moment
-        before the first grasp, shown while the simulation waits for a free worker.
+        Only the grippers the trajectory uses are drawn; the cloud of the state before the try
+        is hidden (it no longer describes the rope). The rope as shown (``rope_nodes_k3``) with
+        the used grippers open at the path's first point is drawn at once: the moment before
+        the first grasp, shown while the simulation waits for a free worker.
         """
+        active_g = (bool(cand.closed_gt[0].any()), bool(cand.closed_gt[1].any()))
         self.stop_animation()
         self.scene.remove_by_name("/label/cloud")
         self._anim_stop = threading.Event()
         stop = self._anim_stop
         self.first_frame_at = None
-        colour = rank_colour(rank)
+        colour = rank_colour(cand.ranked.rank)
 
         painter = FramePainter(
             self.client,
@@ -446,8 +447,8 @@ class SceneDrawer:
         )
 
         last_start = 0.0
-        if start is not None:
-            painter.paint(start[0], start[1], np.zeros(2, dtype=bool))
+        if rope_nodes_k3 is not None:
+            painter.paint(rope_nodes_k3, cand.positions_gt3[:, 0], np.zeros(2, dtype=bool))
             self.client.flush()
             last_start = time.perf_counter()
 

@@ -208,12 +208,7 @@ class LabelTab:
         with self.client.atomic():
             self.drawer.draw_candidates(trying)  # the tried path alone
             self.panels.show(trying)
-        cand = session.candidate(view.selected)
-        active = (bool(cand.closed_gt[0].any()), bool(cand.closed_gt[1].any()))
-        start = None
-        if view.rope_nodes_k3 is not None:
-            start = (view.rope_nodes_k3, cand.positions_gt3[:, 0])
-        self.drawer.animate(recorder, view.selected, active, start=start)
+        self.drawer.animate(recorder, session.candidate(view.selected), view.rope_nodes_k3)
         try:
             session.try_selected(recorder)
         except SessionError as exc:
@@ -341,12 +336,7 @@ class LabelTab:
                     self.drawer.draw(_trying(dataclasses.replace(view)), look=False)
                 self.panels.show(view)
             recorder = FrameRecorder(FRAME_DT)
-            active = (bool(chosen.closed_gt[0].any()), bool(chosen.closed_gt[1].any()))
-            nodes = view.rope_nodes_k3
-            start = None if nodes is None else (nodes, chosen.positions_gt3[:, 0])
-            anim = self.drawer.animate(
-                recorder, chosen.ranked.rank, active, speed=MODEL_SPEED, start=start
-            )
+            anim = self.drawer.animate(recorder, chosen, view.rope_nodes_k3, speed=MODEL_SPEED)
             try:
                 outcome = session.drive_step(recorder)
             except Exception as exc:
