@@ -115,7 +115,6 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "levels.json"
     report = json.loads(path.read_text()) if path.exists() else {"models": {}}
-    report["machine"] = machine_info()
     splits = {
         lv: level_split(task, lv, ROOT / f"results/labels_oracle_{lv}.jsonl") for lv in LEVELS
     }
@@ -159,6 +158,8 @@ def main() -> int:
                 }
             rec["wall_s"] = round(time.perf_counter() - t0, 1)
             report["models"][name] = rec
+            report["machine"] = machine_info()  # where the scores were computed (a resume
+            # that fits nothing leaves the stored machine as it is)
             path.write_text(json.dumps(report, indent=1, sort_keys=True))
         print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
     report["chosen"] = {lv: choose(report["models"], lv) for lv in LEVELS}

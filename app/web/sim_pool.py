@@ -13,7 +13,8 @@ import os
 import queue
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -31,6 +32,11 @@ if TYPE_CHECKING:
     from knotlab.core.world.sim import RopeWorld
 
 _DONE = "done"
+
+
+class SimPoolClosedError(RuntimeError):
+    """The app is stopping: the pool simulates nothing more (a try or search then running
+    ends without a result)."""
 
 
 def _build_tools(library_path: str) -> tuple[RopeWorld, Agent]:
@@ -117,8 +123,8 @@ class PoolRunner:
         self._prefetched: dict[int, tuple[ExpansionJob, Any]] = {}
         self.prefetch_hits = 0  # expansions a level found started already
 
-    def _submit(self, model: QModel, job: ExpansionJob) -> Any:
-        return self.pool._pool.submit(_expand_job, self.pool.library_path, model, job)
+    def _submit(self, model: QModel, job: ExpansionJob) -> Future:
+        return self.pool.submit(_expand_job, self.pool.library_path, model, job)
 
     def prefetch(self, model: QModel, jobs: Sequence[ExpansionJob]) -> None:
         """Queue expansions a later `run` will ask for; they start when a worker is free."""
@@ -147,7 +153,7 @@ class PoolRunner:
     def _in_order(self, futures: list) -> Iterator[ExpansionResult]:
         try:
             for future in futures:
-                result = future.result()
+                result = self.pool.result(future)
                 if self.on_result is not None:
                     self.on_result()
                 yield result
@@ -163,6 +169,7 @@ class SimPool:
         ctx = mp.get_context("spawn")
         self.library_path = library_path
         self._manager = ctx.Manager()
+        self._closed = threading.Event()
         self._pool = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=ctx,
@@ -181,8 +188,13 @@ class SimPool:
         recorder: FrameRecorder,
     ) -> ActionOutcome:
         """Run one try in a worker; ``recorder`` fills with its frames as they are simulated."""
-        frames_in = self._manager.Queue()
-        future = self._pool.submit(
+        if self._closed.is_set():
+            raise SimPoolClosedError("the app is stopping")
+        try:
+            frames_in = self._manager.Queue()
+        except (EOFError, OSError) as exc:  # closed between the check and here
+            raise SimPoolClosedError("the app is stopping") from exc
+        future = self.submit(
             _try_job, self.library_path, snapshot, cloud_n3, demo_index, recorder.dt, frames_in
         )
 
@@ -204,12 +216,37 @@ class SimPool:
         pumper = threading.Thread(target=pump, name="try-frames", daemon=True)
         pumper.start()
         try:
-            return future.result()
+            return self.result(future)
         finally:
             pumper.join(timeout=5)
             recorder.finished = True
 
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """Queue ``fn(*args)`` on a worker; SimPoolClosedError once the pool is closing."""
+        if self._closed.is_set():
+            raise SimPoolClosedError("the app is stopping")
+        try:
+            return self._pool.submit(fn, *args)
+        except RuntimeError as exc:  # "cannot schedule new futures after shutdown"
+            raise SimPoolClosedError("the app is stopping") from exc
+
+    def result(self, future: Future) -> Any:
+        """``future``'s result; SimPoolClosedError when closing the pool cancelled it."""
+        try:
+            return future.result()
+        except (CancelledError, BrokenProcessPool) as exc:
+            if self._closed.is_set():
+                raise SimPoolClosedError("the app is stopping") from exc
+            raise
+
+    @property
+    def closed(self) -> bool:
+        """Whether the pool is closing or closed."""
+        return self._closed.is_set()
+
     def close(self) -> None:
-        """Stop the workers."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the workers: queued jobs are cancelled, running ones finish first (so a try
+        under way still has its frame queue, and nothing fails half-way with a traceback)."""
+        self._closed.set()
+        self._pool.shutdown(wait=True, cancel_futures=True)
         self._manager.shutdown()

@@ -25,6 +25,7 @@ from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, pixel_ratio_of
 from knotlab.app.web.session import FRAME_DT, LabelSession
 from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError, SessionView
+from knotlab.app.web.sim_pool import SimPoolClosedError
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
 
@@ -217,9 +218,14 @@ class LabelTab:
             return
         except Exception as exc:
             self.drawer.stop_animation()
+            if self._gone(exc):
+                log.info("client %s: try dropped: %s", self.client.client_id, _why(exc))
+                return
             self._notify("the simulation failed", f"{type(exc).__name__}: {exc}", "red")
             log.exception("try failed")
             self._draw()
+            return
+        if self.closed:  # the tab went away during the try: nobody to show it to
             return
         first = self.drawer.first_frame_at
         if first is not None:
@@ -341,6 +347,9 @@ class LabelTab:
                 outcome = session.drive_step(recorder)
             except Exception as exc:
                 self.drawer.stop_animation()
+                if self._gone(exc):
+                    log.info("client %s: drive dropped: %s", self.client.client_id, _why(exc))
+                    break
                 self._notify("the model's step failed", f"{type(exc).__name__}: {exc}", "red")
                 log.exception("drive step failed")
                 with contextlib.suppress(SessionError):
@@ -556,6 +565,11 @@ class LabelTab:
         """Show a notification in this tab."""
         self._notify(title, body, color)
 
+    def _gone(self, exc: Exception) -> bool:
+        """Whether ``exc`` only says that this tab or the app went away meanwhile (a try cut
+        short by it has nobody to report to)."""
+        return self.closed or isinstance(exc, SimPoolClosedError)
+
     def close(self) -> None:
         """The browser tab went away: no half label, release an untouched start."""
         self.closed = True
@@ -564,6 +578,11 @@ class LabelTab:
             self.session.close()
         self.inspector.close()
         self.playback.stop()
+
+
+def _why(exc: Exception) -> str:
+    """One line naming an exception."""
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
 def _trying(view: SessionView) -> SessionView:
