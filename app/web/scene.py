@@ -193,10 +193,64 @@ def _serialised(method: _Method) -> _Method:
     return locked  # type: ignore[return-value]
 
 
+TABLE_SIZE = (1.6, 1.2)  # metres, centred on the origin
+GRID_CELL = 0.1  # metres between grid lines
+
+
+def grid_segments(width: float, height: float, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """A grid's lines on z = 0 as (n, 2, 3) segments: (cell lines, the two centre lines)."""
+    half_w, half_h = width / 2, height / 2
+    nx, ny = int(np.floor(half_w / cell + 1e-9)), int(np.floor(half_h / cell + 1e-9))
+    xs = [k * cell for k in range(-nx, nx + 1) if k != 0]
+    ys = [k * cell for k in range(-ny, ny + 1) if k != 0]
+    cells = [((x, -half_h, 0.0), (x, half_h, 0.0)) for x in xs]
+    cells += [((-half_w, y, 0.0), (half_w, y, 0.0)) for y in ys]
+    centre = [((0.0, -half_h, 0.0), (0.0, half_h, 0.0)), ((-half_w, 0.0, 0.0), (half_w, 0.0, 0.0))]
+    return np.asarray(cells, dtype=np.float32), np.asarray(centre, dtype=np.float32)
+
+
+def add_table(scene: viser.SceneApi, *, lite: bool) -> list[Any]:
+    """The table and its 10 cm grid (``lite``: drawn cheaply for software WebGL); their handles.
+
+    The table and the grid fill most of the view. In software WebGL (a headless browser, a
+    machine without a GPU) the table's physically based material and the grid's per-pixel shader
+    cost about a third of every frame, so a lite scene draws the table in a toon material and the
+    grid as plain line segments (the same lines, the same colours).
+    """
+    width, height = TABLE_SIZE
+    table = scene.add_box(
+        "/table",
+        color=(225, 222, 212),
+        dimensions=(width, height, 0.02),
+        position=(0, 0, -0.011),
+        material="toon3" if lite else "standard",
+        receive_shadow=not lite,
+    )
+    if not lite:
+        grid = scene.add_grid(
+            "/grid", width=width, height=height, cell_size=GRID_CELL, position=(0, 0, 0.0005)
+        )
+        return [table, grid]
+    cells, centre = grid_segments(width, height, GRID_CELL)
+    return [
+        table,
+        scene.add_frame("/grid", show_axes=False, position=(0, 0, 0.0005)),
+        scene.add_line_segments(
+            "/grid/cells", cells, (200, 200, 200), thickness=1.0, thickness_units="screen"
+        ),
+        scene.add_line_segments(
+            "/grid/centre", centre, (140, 140, 140), thickness=1.0, thickness_units="screen"
+        ),
+    ]
+
+
 class SceneDrawer:
     """One client's scene: draws a SessionView and plays try animations."""
 
-    def __init__(self, client: viser.ClientHandle, on_pick: Callable[[int], None]) -> None:
+    def __init__(
+        self, client: viser.ClientHandle, on_pick: Callable[[int], None], *, lite: bool = False
+    ) -> None:
+        """``lite``: drawn for software WebGL (cheaper table material, grid as plain lines)."""
         self.client = client
         self.scene = client.scene
         self._on_pick = on_pick
@@ -208,10 +262,7 @@ class SceneDrawer:
         self._anim_stop = threading.Event()
         self._anim_thread: threading.Thread | None = None
         self.first_frame_at: float | None = None  # perf_counter of the last try's first frame
-        self.scene.add_box(
-            "/table", color=(225, 222, 212), dimensions=(1.6, 1.2, 0.02), position=(0, 0, -0.011)
-        )
-        self.scene.add_grid("/grid", width=1.6, height=1.2, cell_size=0.1, position=(0, 0, 0.0005))
+        add_table(self.scene, lite=lite)
         self.label_root = self.scene.add_frame("/label", show_axes=False)
         self.pixel_ratio = 1.0  # the browser's device pixels per CSS pixel (see free_box)
         self.showing: SceneView = "label"

@@ -82,6 +82,7 @@ class LabelApp:
         token: str | None = None,
     ) -> None:
         self.store = store
+        self.lite_rendering = lite_rendering  # every tab's scene drawn for software WebGL
         self.token = token  # None: no token asked (loopback)
         self._test_tasks_path = test_tasks_path
         self._test_tasks = None

@@ -53,7 +53,7 @@ class LabelTab:
         self._disagreements: dict = {}
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
-        self.drawer = SceneDrawer(client, on_pick=self.select)
+        self.drawer = SceneDrawer(client, on_pick=self.select, lite=app.lite_rendering)
         self.panels = LabelPanels(
             client,
             Actions(
