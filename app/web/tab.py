@@ -383,7 +383,7 @@ class LabelTab:
 
     def _draw(self, look: bool = False) -> None:
         session = self.session
-        if session is None:
+        if session is None or self.closed:
             return
         view = session.view()
         with self.client.atomic():  # one batch: the browser redraws once, not per message
@@ -556,6 +556,8 @@ class LabelTab:
         self.panels.show_retrain(*self.app.retrain_state())
 
     def _notify(self, title: str, body: str, color: NotifyColour) -> None:
+        if self.closed:  # nobody to show it to (viser would queue it on a closed connection)
+            return
         try:
             self.client.add_notification(title, body, auto_close_seconds=6.0, color=color)
         except Exception:  # the tab may be gone
