@@ -94,7 +94,14 @@ def build_app(args: argparse.Namespace, *, lite_rendering: bool = False):
     """Open the store, load library, starts and models, and start serving; returns the app."""
     from knotlab.app.web.resources import load_resources
     from knotlab.app.web.server import LabelApp, load_models
+    from knotlab.core.parallel import single_thread_blas
     from knotlab.labeling_db.store import open_store
+
+    # One BLAS thread in the app and the workers it spawns (they inherit the environment), also
+    # when the app is built without the command line (tests, bench/app_latency.py): the tabs'
+    # threads call numpy's LAPACK at once, and a two-thread BLAS pool per call makes them spin
+    # against each other and the browser on a 2-core box.
+    single_thread_blas()
 
     task, level = task_of(args), resolve_level(args)
     library_path = library_file(args)

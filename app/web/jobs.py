@@ -370,7 +370,9 @@ def retrain_worker(db_url: str, library_path: str, out: Any, parent_pid: int) ->
     from knotlab.core.lifeline import die_with_parent
 
     die_with_parent(parent_pid)  # a killed server leaves no training process behind
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from knotlab.core.parallel import single_thread_blas
+
+    single_thread_blas()  # numpy is loaded already: the environment alone would come too late
     try:
         from knotlab.core.demos.library import DemoLibrary
         from knotlab.labeling_db.store import open_store

@@ -84,7 +84,9 @@ def _init(library_path: str, parent_pid: int) -> None:
     from knotlab.core.lifeline import die_with_parent
 
     die_with_parent(parent_pid)  # a killed server leaves no simulator processes behind
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from knotlab.core.parallel import single_thread_blas
+
+    single_thread_blas()  # numpy is loaded already: the environment alone would come too late
     _TOOLS.get(library_path)
 
 
