@@ -82,24 +82,31 @@ fi
 #    policies on one worker, an execution simulated once for all of them): the same outcomes,
 #    ~30 % less time (bench/sharing.py), no priority order; the recorded decision times are
 #    then those of policies that found part of their simulations done.
-# MODEL=levels (the overhand knot): bench with the model bench/level_models.py chose for each
-# level on held-out training starts (four candidates fitted on the main and hard levels' labels
-# and the main level's policy states; resumable, the committed models and scores are read back).
-# Needs both levels' labels and tries (`STOP=labels scripts/table1.sh hard`) and the policy
-# states (`bench/policy_states.py --rounds 2 --out-dir results/policy_states_main`). The tables
-# go to results/table1_LEVEL as before: move the committed ones to results/archive/ first (a
-# results folder refuses another model's outcomes). MODEL=FILE benches with that model file.
+# Which model ranks (MODEL): `levels`, the overhand knot's default and the committed Table I's:
+# the model bench/level_models.py chose for each level on held-out training starts (four
+# candidates fitted on the main and hard levels' labels and the main level's policy states;
+# resumable, the committed models and scores are read back; it chose the hard level's model for
+# both). Needs both levels' labels and tries (`STOP=labels scripts/table1.sh hard`) and the
+# policy states (`bench/policy_states.py --rounds 2 --out-dir results/policy_states_main`).
+# `own` (another task's default): the model of step 2, results/model_LEVEL.npz (the overhand
+# knot's previous Table I, now in results/archive/table1_model_731a_*). MODEL=FILE: that file.
+# A results folder refuses another model's outcomes: to bench another model, move the committed
+# results/table1_LEVEL to results/archive/ first.
+model_choice=${MODEL:-}
+if [ -z "$model_choice" ]; then
+  if [ "$task" = overhand ]; then model_choice=levels; else model_choice=own; fi
+fi
 model_of() {
-  case "${MODEL:-}" in
-    "") echo "${out}/model_${level}.npz" ;;
+  case "$model_choice" in
+    own) echo "${out}/model_${level}.npz" ;;
     levels)
       $bin/python -c "import json,sys; print(json.load(open(sys.argv[1]))['chosen'][sys.argv[2]])" \
         "results/level_models/levels.json" "$1" | sed 's|^|results/level_models/model_|; s|$|.npz|'
       ;;
-    *) echo "$MODEL" ;;
+    *) echo "$model_choice" ;;
   esac
 }
-if [ "${MODEL:-}" = levels ]; then
+if [ "$model_choice" = levels ]; then
   if [ "$task" != overhand ]; then
     echo "table1.sh: MODEL=levels is the overhand knot's level study" >&2
     exit 2
