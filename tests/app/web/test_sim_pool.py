@@ -1,9 +1,13 @@
-"""Closing the app's simulation pool while tries run: the running try finishes with its frames,
-the queued ones end with SimPoolClosedError, and nothing is simulated after (no traceback from a
-manager torn down under a running try)."""
+"""The app's simulation pool: closing it while tries run lets the running try finish with its
+frames, the queued ones end with SimPoolClosedError, and nothing is simulated after (no traceback
+from a manager torn down under a running try); the app and its workers use one BLAS thread."""
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -17,6 +21,8 @@ from knotlab.core.world.sim import RopeWorld
 from tests.minilib import mini_library
 
 pytestmark = pytest.mark.xdist_group("minilib")
+
+_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
 @pytest.mark.slow
@@ -61,3 +67,22 @@ def test_closing_the_pool_lets_the_running_try_finish_and_ends_the_queued_ones(t
     assert pool.closed
     with pytest.raises(SimPoolClosedError, match="stopping"):
         pool.simulate(snapshot, cloud, 0, FrameRecorder(1 / 30))
+
+
+@pytest.mark.slow
+def test_the_app_and_its_workers_use_one_blas_thread_without_the_command_line(project_root):
+    """Tests and benches build the app without `knotlab`'s command line, which pins BLAS: the app
+    pins it itself, else its tabs' concurrent LAPACK calls spin against each other."""
+    env = {k: v for k, v in os.environ.items() if k not in _BLAS_VARS}
+    done = subprocess.run(
+        [sys.executable, "-m", "tests.app.web.blas_probe"],
+        cwd=project_root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    threads = json.loads(done.stdout.strip().splitlines()[-1])
+    assert threads["app"] and set(threads["app"]) == {1}, threads
+    assert threads["worker"] and set(threads["worker"]) == {1}, threads
