@@ -24,12 +24,13 @@ T = TypeVar("T")
 R = TypeVar("R")
 S = TypeVar("S")
 
-_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+# The environment variables that size BLAS / OpenMP thread pools.
+BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
 def single_thread_blas() -> None:
     """Limit BLAS/OpenMP to one thread in this process (call before heavy numpy work)."""
-    for var in _BLAS_VARS:
+    for var in BLAS_VARS:
         os.environ[var] = "1"
     try:
         from threadpoolctl import threadpool_limits

@@ -15,14 +15,13 @@ import pytest
 
 from knotlab.app.web.sim_pool import SimPool, SimPoolClosedError
 from knotlab.core.execution.apply import ActionOutcome
+from knotlab.core.parallel import BLAS_VARS
 from knotlab.core.selection.features import LibraryFeaturizer
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.sim import RopeWorld
 from tests.minilib import mini_library
 
 pytestmark = pytest.mark.xdist_group("minilib")
-
-_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
 @pytest.mark.slow
@@ -73,7 +72,7 @@ def test_closing_the_pool_lets_the_running_try_finish_and_ends_the_queued_ones(t
 def test_the_app_and_its_workers_use_one_blas_thread_without_the_command_line(project_root):
     """Tests and benches build the app without `knotlab`'s command line, which pins BLAS: the app
     pins it itself, else its tabs' concurrent LAPACK calls spin against each other."""
-    env = {k: v for k, v in os.environ.items() if k not in _BLAS_VARS}
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_VARS}
     done = subprocess.run(
         [sys.executable, "-m", "tests.app.web.blas_probe"],
         cwd=project_root,
