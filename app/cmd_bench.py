@@ -340,11 +340,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--estimator",
-        choices=("perfect", "tracker"),
+        choices=("perfect", "tracker", "video"),
         default="perfect",
-        help="how the agent knows the rope's state: perfect (the world's own state) or tracker "
+        help="how the agent knows the rope's state: perfect (the world's own state), tracker "
         "(its previous estimate carried through each executed step and pulled to the camera "
-        "cloud; needs a centreline library) (default perfect)",
+        "cloud once a step) or video (the same tracker following the camera at 30 frames a "
+        "second during each motion); the trackers need a centreline library (default perfect)",
     )
     add_no_progress_argument(p)
     add_flag(p, "--json", detail="a summary after the text")

@@ -6,7 +6,7 @@ with the nominal physics its library and model were made in) as a resumable benc
 compares every policy with its own matched-world outcomes on the same tasks (default: the
 committed whole Table I run on an AVX-512 EPYC, ``results/table1_shared_main``): success with
 Wilson 95 % intervals, the tasks the mismatch lost and gained, an exact sign test, which single
-factor hurts which policy most, and the tracker's error per step. Writes ``OUT/summary.json`` and
+factor hurts which policy most, and the trackers' errors per step. Writes ``OUT/summary.json`` and
 ``OUT/robustness.png`` and prints a markdown table.
 
 Usage:
@@ -14,10 +14,10 @@ Usage:
       --settings combined25,combined50,tracker --policies nn,greedy,la2x5 --tasks 200
   .venv/bin/python bench/robustness.py report --out-dir results/robustness_main
 
-Settings: nominal, tracker, combinedPCT, FACTOR+PCT / FACTOR-PCT, familiesPCT (every factor at
-+-PCT), and WORLD:known (a control: that world with an agent model that is its own physics, so
-what is left of a loss is the world being unlike the demos'). Rerun the same command to resume;
-a setting's folder refuses other arguments.
+Settings: nominal, tracker, video (the two trackers), combinedPCT, FACTOR+PCT / FACTOR-PCT,
+familiesPCT (every factor at +-PCT), and WORLD:known (a control: that world with an agent model
+that is its own physics, so what is left of a loss is the world being unlike the demos'). Rerun
+the same command to resume; a setting's folder refuses other arguments.
 """
 
 from __future__ import annotations
@@ -106,17 +106,25 @@ def _rows(args: argparse.Namespace) -> tuple[list[PairedRow], dict[str, dict], l
         for policy in sorted(here, key=lambda p: ORDER.index(p) if p in ORDER else 99):
             recs = list(here[policy].values())
             rows.append(paired_row(folder.name, policy, recs, matched.get(policy, {})))
-            errors = [e for r in recs for e in r.get("estimate_error_mm", [])]
-            if errors:
-                by_step: dict[int, list[float]] = {}
-                for r in recs:
-                    for i, e in enumerate(r.get("estimate_error_mm", [])):
-                        by_step.setdefault(i, []).append(e)
-                tracker[f"{folder.name}/{policy}"] = {
-                    "mean_mm": sum(errors) / len(errors),
-                    "by_step_mean_mm": {i + 1: sum(v) / len(v) for i, v in sorted(by_step.items())},
-                }
+            summary = _estimate_errors(recs)
+            if summary:
+                tracker[f"{folder.name}/{policy}"] = summary
     return rows, tracker, names
+
+
+def _estimate_errors(recs: list[dict]) -> dict:
+    """The estimates' node and shape errors (mm): mean and mean by step (empty: no estimates)."""
+    out: dict = {}
+    for key, name in (("estimate_error_mm", "mean_mm"), ("estimate_shape_mm", "shape_mean_mm")):
+        by_step: dict[int, list[float]] = {}
+        for r in recs:
+            for i, e in enumerate(r.get(key, [])):
+                by_step.setdefault(i, []).append(e)
+        if by_step:
+            values = [e for v in by_step.values() for e in v]
+            out[name] = sum(values) / len(values)
+            out[f"by_step_{name}"] = {i + 1: sum(v) / len(v) for i, v in sorted(by_step.items())}
+    return out
 
 
 def _model_error_rows(args: argparse.Namespace) -> list[PairedRow]:
@@ -242,6 +250,9 @@ def report(args: argparse.Namespace) -> int:
     for key, t in tracker.items():
         steps = ", ".join(f"step {s}: {v:.1f}" for s, v in t["by_step_mean_mm"].items())
         print(f"\nTracker error, {key}: mean {t['mean_mm']:.1f} mm ({steps})")
+        if "shape_mean_mm" in t:
+            steps = ", ".join(f"step {s}: {v:.1f}" for s, v in t["by_step_shape_mean_mm"].items())
+            print(f"  shape error: mean {t['shape_mean_mm']:.1f} mm ({steps})")
     out = Path(args.out_dir)
     summary = {
         "matched": str(args.matched),

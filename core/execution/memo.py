@@ -19,6 +19,7 @@ from knotlab.core.arrays import cloud_digest
 from knotlab.core.execution.apply import ActionOutcome, apply_demo
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.tasks import Task
+from knotlab.core.world.frames import FrameRecorder
 from knotlab.core.world.protocol import World
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
@@ -79,20 +80,40 @@ def execute_with_memo(
     state_key: str | None = None,
     *,
     task: Task | None = None,
+    frame_dt: float | None = None,
 ) -> ActionOutcome:
     """`apply_demo`, through ``memo`` when one is given; the world ends in the after-state.
 
     A stored outcome is restored (`snapshot_after`), not simulated: the same state as executing
     it (see `OutcomeMemo`). ``state_key``: the world's snapshot digest, if the caller has it.
+    ``frame_dt``: the execution is also recorded every ``frame_dt`` s (`outcome.execution.frames`;
+    recording reads poses only, so the outcome is the same); a stored outcome without such
+    frames is executed again.
     """
     if memo is None:
-        return apply_demo(world, transferer, cloud_n3, action, task=task)
+        return apply_demo(
+            world, transferer, cloud_n3, action, task=task, frames=_recorder(frame_dt)
+        )
     state = state_key if state_key is not None else snapshot_digest(world.snapshot())
     key = OutcomeMemo.key(world, transferer, state, cloud_digest(cloud_n3), action)
     outcome = memo.get(key)
-    if outcome is not None:
+    if outcome is not None and _has_frames(outcome, frame_dt):
         world.restore(outcome.snapshot_after)
         return outcome
-    outcome = apply_demo(world, transferer, cloud_n3, action, task=task)
+    outcome = apply_demo(world, transferer, cloud_n3, action, task=task, frames=_recorder(frame_dt))
     memo.put(key, outcome)
     return outcome
+
+
+def _recorder(frame_dt: float | None) -> FrameRecorder | None:
+    return None if frame_dt is None else FrameRecorder(frame_dt)
+
+
+def _has_frames(outcome: ActionOutcome, frame_dt: float | None) -> bool:
+    """Whether a stored outcome carries what the caller asks: frames every ``frame_dt`` s."""
+    if frame_dt is None or outcome.execution is None:
+        return True
+    frames = outcome.execution.frames
+    if frames is None or len(frames) < 2:
+        return False
+    return bool(abs(frames.times_f[1] - frame_dt) < 0.5 * frame_dt)

@@ -102,6 +102,10 @@ class EpisodeOutcome:
     # With a policy that plans in one of several models (the adaptive lookahead): the member it
     # planned in at each step, 0 being the agent's own model (absent otherwise).
     planned_in: tuple[int, ...] = ()
+    # With a state estimator: the estimate's shape error (mm) at each step, the mean distance
+    # from each centreline to the other (what a cloud-only policy sees; a chain slid along the
+    # rope has a node error but no shape error).
+    estimate_shape_mm: tuple[float, ...] = ()
 
     @classmethod
     def errored(
@@ -132,6 +136,11 @@ class EpisodeOutcome:
                 else {}
             ),
             **({"planned_in": list(self.planned_in)} if self.planned_in else {}),
+            **(
+                {"estimate_shape_mm": [round(e, 3) for e in self.estimate_shape_mm]}
+                if self.estimate_shape_mm
+                else {}
+            ),
         }
 
 
@@ -178,6 +187,11 @@ class EpisodeRecord:
                 if "estimate_error_mm" in s.info
             ),
             tuple(int(s.info["planned_in"]) for s in self.steps if "planned_in" in s.info),
+            tuple(
+                float(s.info["estimate_shape_mm"])
+                for s in self.steps
+                if "estimate_shape_mm" in s.info
+            ),
         )
 
     def summary(self) -> dict:
@@ -278,7 +292,10 @@ def run_episode(
                 if observe_noise > 0:
                     rng = np.random.default_rng(step_seed(seed, step))
                     cloud = cloud + rng.normal(0.0, observe_noise, size=cloud.shape)
-                estimate_info = {"estimate_error_mm": estimate.error_mm}
+                estimate_info = {
+                    "estimate_error_mm": estimate.error_mm,
+                    "estimate_shape_mm": estimate.shape_mm,
+                }
             scan = agent.scan(cloud)
             t_scan = time.perf_counter() - t0
             ctx = StepContext(
@@ -298,10 +315,17 @@ def run_episode(
                 outcome = decision.outcome
             else:  # the model's simulated outcome is only its prediction: the world acts
                 outcome = execute_with_memo(
-                    memo, world, agent.transferer, cloud, decision.action, task=agent.task
+                    memo,
+                    world,
+                    agent.transferer,
+                    cloud,
+                    decision.action,
+                    task=agent.task,
+                    frame_dt=estimator.frame_dt,
                 )
             if not itself:
-                estimator.executed(outcome.plan.trajectory, sim_world)
+                frames = outcome.execution.frames if outcome.execution is not None else None
+                estimator.executed(outcome.plan.trajectory, sim_world, frames)
         except _NUMERIC_ERRORS as exc:
             log.warning("task %s step %d: %s: %s", task_id, step, type(exc).__name__, exc)
             failure_kind, error = FailureKind.ERROR, f"{type(exc).__name__}: {exc}"

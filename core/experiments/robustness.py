@@ -35,12 +35,12 @@ class StudySetting:
 
     @property
     def factor(self) -> MismatchFactor | None:
-        """The one factor this setting changes (None: nominal, combined, tracker)."""
+        """The one factor this setting changes (None: nominal, combined, the trackers)."""
         return parse_setting(self.world).factor
 
     @property
     def level(self) -> float:
-        """The mismatch level as a fraction (0 for nominal and the tracker)."""
+        """The mismatch level as a fraction (0 for nominal and the trackers)."""
         setting = parse_setting(self.world)
         if setting.per_task:
             return setting.combined_level
@@ -48,15 +48,15 @@ class StudySetting:
 
 
 def parse_study_settings(text: str) -> list[StudySetting]:
-    """Settings from a comma list: nominal, tracker, combinedPCT, FACTOR+PCT, FACTOR-PCT,
+    """Settings from a comma list: nominal, tracker, video, combinedPCT, FACTOR+PCT, FACTOR-PCT,
     familiesPCT (every factor at +PCT and -PCT where that is a possible world), or any world
     followed by ``:known`` (the agent's model is that world's own physics: a control)."""
     out: list[StudySetting] = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
             continue
-        if item == "tracker":
-            out.append(StudySetting("tracker", "nominal", EstimatorKind.TRACKER))
+        if item in ("tracker", "video"):
+            out.append(StudySetting(item, "nominal", EstimatorKind(item)))
         elif item.endswith(":known"):
             world = item.removesuffix(":known")
             parse_setting(world)

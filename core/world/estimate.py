@@ -8,8 +8,9 @@ simulates in a *model world* (a `RopeWorld` with the agent's own physics) placed
 - ``state``: the full dynamic state (every link's pose and velocity), only from the `perfect`
   estimator, i.e. an oracle state estimate; the model adopts it exactly where its rope has the
   same links (count, length, radius), and otherwise places its own rope at rest along the nodes;
-- ``error_mm``: the mean distance of the estimated nodes to the true ones (a simulation knows the
-  truth: it is reported, never used to decide).
+- ``error_mm``: the mean distance of the estimated nodes to the true ones, and ``shape_mm``: the
+  mean distance from each centreline to the other (a chain slid along the rope has a node error
+  but no shape error). A simulation knows the truth: both are reported, never used to decide.
 
 Estimators:
 
@@ -24,8 +25,14 @@ Estimators:
   whole estimate in xy, as a slowly drifting camera calibration) is added. The first estimate
   starts from the true chain: the start ropes lie uncrossed, which every tracker initialises on.
   It sees one frame after each executed step, not the motion in between.
+- ``video``: the same tracker following the camera during the motion too, at ``VIDEO_FPS``
+  frames a second (a rope tracker runs at the camera's rate): at each frame its chain moves by
+  the agent's model's predicted motion since the last frame (the executed trajectory simulated
+  from its previous estimate), then its nodes are pulled to that frame's visible rope
+  (`follow_frame`: hidden nodes stay where the prediction put them). The decision's estimate is
+  the ``tracker``'s update from the chain it followed to the end of the motion.
 
-Same seed, same estimates: the tracker draws its noise and drift from one Generator per episode.
+Same seed, same estimates: a tracker draws its noise and drift from one Generator per episode.
 Shape suffixes: k = rope nodes, n = cloud points.
 """
 
@@ -38,9 +45,17 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError, parse_choice
-from knotlab.core.world.observation import TRACKER_NOISE, centreline_points, tracked_centreline
+from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
+from knotlab.core.world.observation import (
+    TRACKER_NOISE,
+    TRACKER_RADIUS,
+    centreline_points,
+    surface_cloud_of_nodes,
+    tracked_centreline,
+)
 from knotlab.core.world.protocol import World
 from knotlab.core.world.rope import resample_by_arc_length, rope_length, scale_xy_to_length
+from knotlab.core.world.video_tracking import follow_frame
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
     from knotlab.core.world.sim import SimSnapshot
@@ -55,6 +70,9 @@ _TRACKER_POINTS = 1000
 REGISTER_ABOVE = 0.02
 TRACKER_DRIFT = 0.001  # m per step, standard deviation of the drift's xy random walk
 _MAX_HEIGHT_RADII = 8.0  # an estimated node higher than this many rope radii is placed there
+# The video tracker's camera rate: a gripper at its 0.5 m/s cap moves 1.7 cm a frame, inside
+# one pull's 2 cm reach.
+VIDEO_FPS = 30.0
 
 
 class EstimatorKind(StrEnum):
@@ -62,6 +80,7 @@ class EstimatorKind(StrEnum):
 
     PERFECT = "perfect"
     TRACKER = "tracker"
+    VIDEO = "video"
 
     @classmethod
     def parse(cls, value: str | EstimatorKind) -> EstimatorKind:
@@ -76,6 +95,7 @@ class RopeEstimate:
     nodes_k3: np.ndarray
     state: SimSnapshot | None = None
     error_mm: float = 0.0  # mean distance of the estimated nodes to the true ones
+    shape_mm: float = 0.0  # mean distance from each centreline to the other
 
     @property
     def is_exact(self) -> bool:
@@ -90,6 +110,16 @@ def node_error_mm(estimate_k3: np.ndarray, truth_k3: np.ndarray) -> float:
     if est.shape != truth.shape:
         est = resample_by_arc_length(est, truth.shape[0])
     return float(np.linalg.norm(est - truth, axis=1).mean() * 1000.0)
+
+
+def shape_error_mm(estimate_k3: np.ndarray, truth_k3: np.ndarray) -> float:
+    """Mean distance (mm) from each centreline's points to the other centreline, both ways."""
+    from scipy.spatial import cKDTree
+
+    est, truth = centreline_points(estimate_k3), centreline_points(truth_k3)
+    there = cKDTree(truth).query(est)[0].mean()
+    back = cKDTree(est).query(truth)[0].mean()
+    return float(500.0 * (there + back))
 
 
 def place_estimate(model_world: World, estimate: RopeEstimate) -> None:
@@ -120,6 +150,14 @@ def place_estimate(model_world: World, estimate: RopeEstimate) -> None:
     nodes = resample_by_arc_length(nodes, params.n_links + 1)
     if abs(rope_length(nodes) - params.length) > 1e-9 * params.length:
         nodes = scale_xy_to_length(nodes, params.length)
+        # Scaling xy shortens a steep segment less than a flat one: where that left a segment
+        # longer than the simulator lets a link stretch, respace evenly and scale the whole
+        # chain about its centroid instead (every segment then a link long; heights change by
+        # the same factor). Any other estimate is placed as before.
+        if np.linalg.norm(np.diff(nodes, axis=0), axis=1).max() > 1.25 * params.link_length:
+            nodes = resample_by_arc_length(nodes, params.n_links + 1)
+            centre = nodes.mean(axis=0)
+            nodes = centre + (nodes - centre) * (params.length / rope_length(nodes))
     model_world.reset(nodes)
 
 
@@ -202,8 +240,19 @@ class StateEstimator(Protocol):
         """The estimate of the world's current rope (the world is only sensed, never changed)."""
         ...
 
-    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
-        """The robot executed ``trajectory`` (None: nothing moved); carry the estimate along."""
+    @property
+    def frame_dt(self) -> float | None:
+        """Seconds between the camera frames it follows during a motion (None: it needs none)."""
+        ...
+
+    def executed(
+        self,
+        trajectory: GripperTrajectory | None,
+        model_world: World,
+        frames: ExecutionFrames | None = None,
+    ) -> None:
+        """The robot executed ``trajectory`` (None: nothing moved), recorded as ``frames`` when
+        `frame_dt` asked for them; carry the estimate along."""
         ...
 
 
@@ -219,7 +268,17 @@ class PerfectEstimator:
         """The world's snapshot and nodes, error 0."""
         return RopeEstimate(world.rope_nodes(), world.snapshot(), 0.0)
 
-    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
+    @property
+    def frame_dt(self) -> float | None:
+        """No frames: it reads the world's state."""
+        return None
+
+    def executed(
+        self,
+        trajectory: GripperTrajectory | None,
+        model_world: World,
+        frames: ExecutionFrames | None = None,
+    ) -> None:
         """Nothing to carry: the next estimate reads the world again."""
 
 
@@ -265,9 +324,20 @@ class TrackingEstimator:
         self._offset[:2] += rng.normal(0.0, self.drift, size=2)
         nodes = nodes + self._offset
         self._last = nodes
-        return RopeEstimate(nodes, None, node_error_mm(nodes, world.rope_nodes()))
+        truth = world.rope_nodes()
+        return RopeEstimate(nodes, None, node_error_mm(nodes, truth), shape_error_mm(nodes, truth))
 
-    def executed(self, trajectory: GripperTrajectory | None, model_world: World) -> None:
+    @property
+    def frame_dt(self) -> float | None:
+        """No frames: it sees the rope once, after each step."""
+        return None
+
+    def executed(
+        self,
+        trajectory: GripperTrajectory | None,
+        model_world: World,
+        frames: ExecutionFrames | None = None,
+    ) -> None:
         """Predict: the last estimate simulated through ``trajectory`` in the agent's model."""
         if self._last is None or trajectory is None:
             return
@@ -279,9 +349,70 @@ class TrackingEstimator:
         self._prior = predicted
 
 
+@dataclass
+class VideoTracker(TrackingEstimator):
+    """The tracker following the camera at ``fps`` through each motion, not once a step."""
+
+    fps: float = VIDEO_FPS
+    kind: EstimatorKind = EstimatorKind.VIDEO
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise InvalidInputError(f"tracker fps must be finite and > 0, got {self.fps}")
+        self._camera_radius = 0.0
+
+    def start(self, world: World, seed: int, model_world: World) -> None:
+        """Initialise on the start rope, as the once-a-step tracker does."""
+        super().start(world, seed, model_world)
+        # Only to render the frames' camera clouds: the camera sees the rope as thick as it is.
+        self._camera_radius = world.params.radius
+
+    @property
+    def frame_dt(self) -> float | None:
+        """One camera frame every 1 / fps seconds of the motion."""
+        return 1.0 / self.fps
+
+    def executed(
+        self,
+        trajectory: GripperTrajectory | None,
+        model_world: World,
+        frames: ExecutionFrames | None = None,
+    ) -> None:
+        """Follow the motion frame by frame: the model simulates the executed trajectory from
+        the last estimate, and at each camera frame its rope is pulled to what the camera sees."""
+        if self._last is None or trajectory is None:
+            return
+        if frames is None or len(frames) < 2:
+            super().executed(trajectory, model_world)
+            return
+        rng = self._rng
+
+        def correct(f: int, nodes_k3: np.ndarray) -> np.ndarray | None:
+            if f == 0 or f >= len(frames):
+                return None
+            surface = surface_cloud_of_nodes(
+                frames.nodes_fk3[f],
+                self._camera_radius,
+                max_points=_TRACKER_POINTS,
+                voxel=_TRACKER_VOXEL,
+            )
+            surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
+            return follow_frame(nodes_k3, surface, radius=self._radius, reach=TRACKER_RADIUS)
+
+        place_estimate(model_world, RopeEstimate(self._last))
+        result = model_world.execute(trajectory, frames=FrameRecorder(1.0 / self.fps, correct))
+        predicted = model_world.rope_nodes()
+        if result.failure_kind is not None and not np.all(np.isfinite(predicted)):
+            predicted = self._last  # the model blew up: keep the last estimate as the prior
+        self._prior = predicted
+
+
 def make_estimator(kind: EstimatorKind | str) -> StateEstimator:
     """A fresh estimator of ``kind`` (one per episode worker; `start` resets it per episode)."""
     kind = EstimatorKind.parse(kind)
     if kind is EstimatorKind.TRACKER:
         return TrackingEstimator()
+    if kind is EstimatorKind.VIDEO:
+        return VideoTracker()
     return PerfectEstimator()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +31,11 @@ class ExecutionFrames:
         return len(self.times_f)
 
 
+# Called with a frame's index and the rope's nodes (K, 3) as just recorded; returns the nodes
+# the rope should be moved to, or None to leave it.
+FrameCorrection = Callable[[int, np.ndarray], np.ndarray | None]
+
+
 class FrameRecorder:
     """Collects frames during an execution, ``dt`` simulated seconds apart.
 
@@ -38,10 +43,13 @@ class FrameRecorder:
     ``len``): an animation can start playing at the first frame instead of after the run.
     """
 
-    def __init__(self, dt: float) -> None:
+    def __init__(self, dt: float, correct: FrameCorrection | None = None) -> None:
         if not (np.isfinite(dt) and dt > 0):
             raise InvalidInputError(f"frame interval must be finite and > 0 s, got {dt}")
         self.dt = float(dt)
+        # A tracker's correction of a model world it follows (the simulator moves its links to
+        # the nodes returned, keeping their velocities); None in a world that only records.
+        self.correct = correct
         self.every = 0  # sim steps between frames, set by the world that records
         self.finished = False
         self._t: list[float] = []

@@ -93,23 +93,63 @@ def surface_cloud(
     keeps per voxel the sample nearest to the voxel's mean (so points stay ON the surface),
     then adds N(0, noise^2) per coordinate from a Generator seeded with `seed`.
     """
+    _check_cloud_settings(noise, max_points, voxel)
+    prm = state.params
+    rot_l33 = _quat_to_axes(state.quaternions_l4)
+    cloud = _upper_surface(state.positions_l3, rot_l33, prm.link_length, prm.radius, voxel)
+    return _thin_and_noise(cloud, noise, seed, max_points)
+
+
+def surface_cloud_of_nodes(
+    nodes_k3: np.ndarray,
+    radius: float,
+    *,
+    max_points: int = 150,
+    voxel: float = 0.025,
+) -> np.ndarray:
+    """The upper-surface cloud (N <= max_points, 3) of a rope known only by its node chain.
+
+    The same sampling as `surface_cloud` on capsules spanning consecutive nodes (a frame of an
+    execution records nodes, not link poses; a capsule's roll about its axis is not visible).
+    """
+    _check_cloud_settings(0.0, max_points, voxel)
+    nodes = np.asarray(nodes_k3, dtype=float)
+    seg_l3 = nodes[1:] - nodes[:-1]
+    length_l = np.linalg.norm(seg_l3, axis=1)
+    axis_l3 = seg_l3 / np.maximum(length_l, 1e-12)[:, None]
+    # Any unit vector across the axis: the world's up where the link is not vertical.
+    helper = np.where(np.abs(axis_l3[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    u_l3 = np.cross(helper, axis_l3)
+    u_l3 /= np.maximum(np.linalg.norm(u_l3, axis=1, keepdims=True), 1e-12)
+    v_l3 = np.cross(axis_l3, u_l3)
+    rot_l33 = np.stack([u_l3, v_l3, axis_l3], axis=2)
+    centres_l3 = 0.5 * (nodes[1:] + nodes[:-1])
+    cloud = _upper_surface(centres_l3, rot_l33, float(length_l.mean()), radius, voxel)
+    return _thin_and_noise(cloud, 0.0, None, max_points)
+
+
+def _check_cloud_settings(noise: float, max_points: int, voxel: float) -> None:
     if not (np.isfinite(noise) and noise >= 0):
         raise InvalidInputError(f"observe noise must be finite and >= 0, got {noise}")
     if max_points < 1 or not voxel > 0:
         raise InvalidInputError("observe needs max_points >= 1 and voxel > 0")
-    prm = state.params
-    rot_l33 = _quat_to_axes(state.quaternions_l4)
+
+
+def _upper_surface(
+    centres_l3: np.ndarray, rot_l33: np.ndarray, link_length: float, radius: float, voxel: float
+) -> np.ndarray:
+    """One surface point per occupied voxel: the sample nearest to its voxel's mean, (N, 3)."""
     u_l3, v_l3, a_l3 = rot_l33[:, :, 0], rot_l33[:, :, 1], rot_l33[:, :, 2]
-    along_s = np.linspace(-0.5, 0.5, 5, endpoint=False) * prm.link_length
+    along_s = np.linspace(-0.5, 0.5, 5, endpoint=False) * link_length
     phi_r = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
     normal_lr3 = (
         np.cos(phi_r)[None, :, None] * u_l3[:, None, :]
         + np.sin(phi_r)[None, :, None] * v_l3[:, None, :]
     )
     pts = (
-        state.positions_l3[:, None, None, :]
+        centres_l3[:, None, None, :]
         + along_s[None, :, None, None] * a_l3[:, None, None, :]
-        + prm.radius * normal_lr3[:, None, :, :]
+        + radius * normal_lr3[:, None, :, :]
     )
     visible = np.broadcast_to(normal_lr3[:, None, :, 2] >= -0.2, pts.shape[:3])
     pts = pts[visible & np.isfinite(pts).all(axis=-1)]
@@ -120,10 +160,16 @@ def surface_cloud(
     order = np.lexsort((dist, inv))  # by voxel, nearest first
     first = np.ones(order.size, dtype=bool)
     first[1:] = inv[order][1:] != inv[order][:-1]
-    cloud = pts[order[first]]
+    return pts[order[first]]
+
+
+def _thin_and_noise(
+    cloud: np.ndarray, noise: float, seed: int | None, max_points: int
+) -> np.ndarray:
+    """At most ``max_points`` evenly through the cloud's order, plus seeded N(0, noise^2)."""
     if cloud.shape[0] > max_points:
         cloud = cloud[np.linspace(0, cloud.shape[0] - 1, max_points).round().astype(int)]
-    if noise > 0:
+    if noise > 0 and len(cloud):
         cloud = cloud + np.random.default_rng(seed).normal(0.0, noise, size=cloud.shape)
     return cloud
 

@@ -578,6 +578,25 @@ class RopeWorld:
         quats = np.array([q for _, q in poses])
         nodes = _nodes_of(SimSnapshot(pos, quats, zeros, zeros, 0.0, self.params))
         rec.add(self._sim_time - t0, nodes, grippers_g3, closed_g)
+        if rec.correct is not None:
+            moved = rec.correct(len(rec) - 1, nodes)
+            if moved is not None:
+                self._shift_links(pos, quats, moved - nodes)
+
+    def _shift_links(
+        self, pos_l3: np.ndarray, quats_l4: np.ndarray, node_moves_k3: np.ndarray
+    ) -> None:
+        """Translate each link by the mean move of its two nodes, keeping its orientation and
+        velocities (links whose nodes did not move are not touched)."""
+        cid = self._client
+        moves_l3 = 0.5 * (node_moves_k3[1:] + node_moves_k3[:-1])
+        for i in np.flatnonzero(np.any(moves_l3 != 0.0, axis=1)):
+            p.resetBasePositionAndOrientation(
+                self._links[i],
+                (pos_l3[i] + moves_l3[i]).tolist(),
+                quats_l4[i].tolist(),
+                physicsClientId=cid,
+            )
 
     def execute(
         self,
@@ -591,7 +610,9 @@ class RopeWorld:
         exceeds ``max_speed`` (3-D) or ``max_descent_speed`` (downwards). Never raises on a
         simulation blow-up: that ends the run with ``ok=False``. With a ``frames`` recorder the
         rope and grippers are recorded every ``frames.dt`` simulated seconds for animation
-        (reading poses only: the physics is the same with or without frames).
+        (reading poses only: the physics is the same with or without frames), unless the
+        recorder carries a ``correct``ion, which moves the rope at each frame (a tracker's
+        model world following a camera).
         """
         if not isinstance(traj, GripperTrajectory):
             raise InvalidInputError(

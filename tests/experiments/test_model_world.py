@@ -13,7 +13,8 @@ from knotlab.app import cli
 from knotlab.core.agent import Agent
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.world.estimate import PerfectEstimator, TrackingEstimator
+from knotlab.core.execution.memo import OutcomeMemo
+from knotlab.core.world.estimate import PerfectEstimator, TrackingEstimator, VideoTracker
 from knotlab.core.world.observation import centreline_points
 from knotlab.core.world.sim import RopeParams, RopeWorld
 from tests.minilib import mini_library, mini_tasks, write_mini_files
@@ -62,7 +63,8 @@ class _SensedOnly:
         return getattr(self._world, name)
 
 
-def test_with_a_tracker_the_search_never_touches_the_worlds_state():
+@pytest.mark.parametrize("tracker", [TrackingEstimator, VideoTracker])
+def test_with_a_tracker_the_search_never_touches_the_worlds_state(tracker):
     agent = Agent(_centreline_library(), None, "oracle")
     task = mini_tasks(1)[0]
     searched_in = []
@@ -74,13 +76,42 @@ def test_with_a_tracker_the_search_never_touches_the_worlds_state():
             task,
             max_steps=2,
             model_world=model,
-            estimator=TrackingEstimator(),
+            estimator=tracker(),
         )
     assert record.error is None, record.error
     assert searched_in and all(w is model for w in searched_in)
     errors = record.outcome().estimate_error_mm
     assert len(errors) == record.n_steps and all(0 < e < 50 for e in errors)
     assert "estimate_error_mm" in record.summary()
+
+
+def test_the_video_tracker_gets_the_worlds_frames_through_a_shared_memo_and_ends_the_same():
+    agent = Agent(_centreline_library(), None, "nn")
+    task = mini_tasks(1)[0]
+    seen: list[int] = []
+
+    class Counting(VideoTracker):
+        def executed(self, trajectory, model_world, frames=None):
+            seen.append(0 if frames is None else len(frames))
+            super().executed(trajectory, model_world, frames)
+
+    memo = OutcomeMemo(size=64)
+    with RopeWorld() as world, RopeWorld() as model:
+        # A perfect-estimate episode fills the memo with outcomes recorded without frames.
+        agent.run_episode(world, task, max_steps=2, memo=memo, model_world=model)
+        runs = [
+            agent.run_episode(
+                world, task, max_steps=2, memo=memo, model_world=model, estimator=Counting()
+            )
+            for _ in range(2)
+        ]
+        fresh = agent.run_episode(
+            world, task, max_steps=2, model_world=model, estimator=VideoTracker()
+        )
+    # Every executed step reached the tracker with its frames (30 a second, ~2 s or more).
+    assert seen and all(n > 30 for n in seen)
+    assert _summary(runs[0]) == _summary(runs[1]) == _summary(fresh)
+    assert runs[0].outcome().estimate_error_mm == fresh.outcome().estimate_error_mm
 
 
 def test_in_a_heavier_world_the_world_acts_not_the_models_prediction():

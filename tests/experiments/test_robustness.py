@@ -15,10 +15,11 @@ from knotlab.core.world.mismatch import MismatchFactor
 
 
 def test_settings_parse_names_families_the_tracker_and_controls():
-    settings = parse_study_settings("combined25,tracker,mass-10,combined50:known,families25")
+    settings = parse_study_settings("combined25,tracker,video,mass-10,combined50:known,families25")
     by_name = {s.name: s for s in settings}
     assert by_name["tracker"].estimator is EstimatorKind.TRACKER
     assert by_name["tracker"].world == "nominal"
+    assert by_name["video"].estimator is EstimatorKind.VIDEO and by_name["video"].world == "nominal"
     assert by_name["combined50_known"].agent_model == "combined50"
     assert by_name["mass-10"].factor is MismatchFactor.MASS
     assert by_name["mass-10"].level == pytest.approx(0.1)

@@ -103,3 +103,21 @@ def test_the_tracker_refuses_to_estimate_before_it_starts_and_bad_settings():
     with pytest.raises(InvalidInputError, match="perfect, tracker"):
         make_estimator("psychic")
     assert make_estimator(EstimatorKind.TRACKER).kind is EstimatorKind.TRACKER
+
+
+def test_a_long_estimate_with_a_steep_peak_still_becomes_a_rope_of_the_models_links():
+    # An estimate a quarter too long (noise adds length) with one node 8 cm up: scaling xy
+    # alone to the rope's length leaves the peak's steep segments longer than a link may
+    # stretch (32 mm against 25), which the simulator refuses.
+    # A zigzag as well: respacing it evenly cuts its corners (a tenth of its length or more).
+    peaked = straight_rope(41, 1.0, 0.01)
+    peaked[:, 0] *= 1.25
+    peaked[20, 2] = 0.08
+    zigzag = peaked.copy()
+    zigzag[::2, 1] += 0.012
+    with RopeWorld() as model:
+        for nodes in (peaked, zigzag):
+            place_estimate(model, RopeEstimate(nodes))
+            placed = model.rope_nodes()
+            assert rope_length(placed) == pytest.approx(1.0, rel=0.01)
+            assert np.linalg.norm(np.diff(placed, axis=0), axis=1).max() < 1.25 * 0.025
