@@ -339,10 +339,17 @@ class TrackingEstimator:
         frames: ExecutionFrames | None = None,
     ) -> None:
         """Predict: the last estimate simulated through ``trajectory`` in the agent's model."""
-        if self._last is None or trajectory is None:
-            return
+        if self._last is not None and trajectory is not None:
+            self._predict(trajectory, model_world, None)
+
+    def _predict(
+        self, trajectory: GripperTrajectory, model_world: World, frames: FrameRecorder | None
+    ) -> None:
+        """The prior: the last estimate placed in the model world and simulated through
+        ``trajectory`` (a recorder with a correction follows the camera on the way)."""
+        assert self._last is not None
         place_estimate(model_world, RopeEstimate(self._last))
-        result = model_world.execute(trajectory)
+        result = model_world.execute(trajectory, frames=frames)
         predicted = model_world.rope_nodes()
         if result.failure_kind is not None and not np.all(np.isfinite(predicted)):
             predicted = self._last  # the model blew up: keep the last estimate as the prior
@@ -400,12 +407,7 @@ class VideoTracker(TrackingEstimator):
             surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
             return follow_frame(nodes_k3, surface, radius=self._radius, reach=TRACKER_RADIUS)
 
-        place_estimate(model_world, RopeEstimate(self._last))
-        result = model_world.execute(trajectory, frames=FrameRecorder(1.0 / self.fps, correct))
-        predicted = model_world.rope_nodes()
-        if result.failure_kind is not None and not np.all(np.isfinite(predicted)):
-            predicted = self._last  # the model blew up: keep the last estimate as the prior
-        self._prior = predicted
+        self._predict(trajectory, model_world, FrameRecorder(1.0 / self.fps, correct))
 
 
 def make_estimator(kind: EstimatorKind | str) -> StateEstimator:
