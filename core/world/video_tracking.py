@@ -25,7 +25,8 @@ def follow_frame(
     on a hidden node would random-walk it). Heights are left to the model's physics (the
     visible surface's mean height sits half a radius below the top, and a push into the table
     or another strand is a push the simulator answers). Only the move across the chain is kept
-    (a cloud says where the rope is, not which part of it), smoothed 1-2-1 along the chain.
+    (a cloud says where the rope is, not which part of it), shrunk by ``DEAD_BAND`` and smoothed
+    1-2-1 along the chain.
     """
     from scipy.spatial import cKDTree
 
