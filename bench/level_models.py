@@ -13,6 +13,10 @@ settings (C = 1000, D = 10, landmarks 50 + 20, the tried candidates):
   states greedy reached from the main training starts, `bench/policy_states.py`, with their own
   tried candidates): every label made so far that no held-out start contributed to.
 
+``--task`` fits another registered task's models the same way, from its own files under
+``results/<task>/`` (labels_oracle_<level>.jsonl, tries_<level>.jsonl) with its shipped model's C
+and D; ``both+policy`` needs policy-state labels, which only the overhand knot has.
+
 Every model is scored on each level's held-out starts: greedy's success (episodes in
 simulation, Wilson 95 % intervals) and top-1 / V-AUC on the held-out executions' labelled states.
 The test sets are never touched. The choice rule, fixed before the run: per level, the model with
@@ -23,6 +27,7 @@ Outputs in --out-dir (resumable: a fitted model and its scores are read back): m
 levels.json (models, scores, machine, wall times), levels.png. Same seed, same files.
 
 Usage: .venv/bin/python bench/level_models.py --out-dir results/level_models [--workers 2]
+       .venv/bin/python bench/level_models.py --task figure8 --out-dir results/figure8/level_models
 """
 
 from __future__ import annotations
@@ -69,6 +74,12 @@ MODELS = {
 POLICY_STATES = ROOT / "results/policy_states_main"  # round1.jsonl and tries_round1.jsonl
 
 
+def results_dir(task_name: str) -> Path:
+    """Where a task's labels and tries are (scripts/table1.sh's layout): the overhand knot's in
+    results/, every other task's in results/<task>/."""
+    return ROOT / "results" if task_name == "overhand" else ROOT / "results" / task_name
+
+
 @dataclass(frozen=True)
 class LevelSplit:
     """One level's oracle executions, split into training and held-out parts by the seed."""
@@ -107,27 +118,34 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--task", default="overhand")
     args = ap.parse_args()
-    task = get_task("overhand")
+    task = get_task(args.task)
+    files = results_dir(args.task)
+    shipped = QModel.load(task.files.model_path).hyperparameters
+    C, D = float(shipped["C"]), float(shipped["D"])
     library_path = task.files.library_path
     library = DemoLibrary.load(library_path)
     out = args.out_dir
     out.mkdir(parents=True, exist_ok=True)
     path = out / "levels.json"
     report = json.loads(path.read_text()) if path.exists() else {"models": {}}
-    splits = {
-        lv: level_split(task, lv, ROOT / f"results/labels_oracle_{lv}.jsonl") for lv in LEVELS
-    }
+    splits = {lv: level_split(task, lv, files / f"labels_oracle_{lv}.jsonl") for lv in LEVELS}
     tries: dict = {}
     for lv in LEVELS:
-        tries.update(read_tries(ROOT / f"results/tries_{lv}.jsonl"))
-    tries.update(read_tries(POLICY_STATES / "tries_round1.jsonl"))
-    # Round 1 rolled greedy out from the main level's training part only: no held-out start.
-    policy = tuple(_read(POLICY_STATES / "round1.jsonl"))
+        tries.update(read_tries(files / f"tries_{lv}.jsonl"))
+    models = dict(MODELS)
+    policy: tuple[LabelledExecution, ...] = ()
+    if args.task == "overhand":
+        tries.update(read_tries(POLICY_STATES / "tries_round1.jsonl"))
+        # Round 1 rolled greedy out from the main level's training part only: no held-out start.
+        policy = tuple(_read(POLICY_STATES / "round1.jsonl"))
+    else:
+        del models["both+policy"]
     held_tasks = {e.task_id for s in splits.values() for e in s.held_out}
     assert not any(e.metadata["reached_by"]["start_task_id"] in held_tasks for e in policy)
     held_ids = frozenset(e.execution_id for s in splits.values() for e in s.held_out)
-    for name, levels in MODELS.items():
+    for name, levels in models.items():
         rec = report["models"].get(name, {})
         model_path = out / f"model_{name}.npz"
         if not (model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS)):
@@ -135,7 +153,7 @@ def main() -> int:
             executions = [
                 e for lv in levels for e in (policy if lv == "policy" else splits[lv].train)
             ]
-            fit(executions, library, held_ids, tries, model_path, args.workers)
+            fit(executions, library, held_ids, tries, model_path, args.workers, C=C, D=D)
             rec = {
                 "levels": list(levels),
                 "model": str(model_path.relative_to(ROOT))

@@ -125,11 +125,13 @@ def fit(
     tries: dict,
     out: Path,
     workers: int,
+    C: float = 1000.0,
+    D: float = 10.0,
 ) -> tuple[Path, dict]:
-    """Fit with the shipped model's settings on everything but the held-out executions."""
+    """Fit with the shipped model's settings (C, D) on everything but the held-out executions."""
     search = QModelSearch(
-        C=(1000.0,),
-        D=(10.0,),
+        C=(C,),
+        D=(D,),
         landmarks=(50, 20),
         tries=tries,
         validation_ids=held_out,

@@ -113,9 +113,14 @@ def _rows(args: argparse.Namespace) -> tuple[list[PairedRow], dict[str, dict], l
 
 
 def _estimate_errors(recs: list[dict]) -> dict:
-    """The estimates' node and shape errors (mm): mean and mean by step (empty: no estimates)."""
+    """The estimates' node and shape errors (mm) and the share of them with the rope's crossing
+    code: mean and mean by step (empty: no estimates)."""
     out: dict = {}
-    for key, name in (("estimate_error_mm", "mean_mm"), ("estimate_shape_mm", "shape_mean_mm")):
+    for key, name in (
+        ("estimate_error_mm", "mean_mm"),
+        ("estimate_shape_mm", "shape_mean_mm"),
+        ("estimate_crossings_right", "crossings_right"),  # a share: booleans average to one
+    ):
         by_step: dict[int, list[float]] = {}
         for r in recs:
             for i, e in enumerate(r.get(key, [])):
@@ -253,6 +258,11 @@ def report(args: argparse.Namespace) -> int:
         if "shape_mean_mm" in t:
             steps = ", ".join(f"step {s}: {v:.1f}" for s, v in t["by_step_shape_mean_mm"].items())
             print(f"  shape error: mean {t['shape_mean_mm']:.1f} mm ({steps})")
+        if "crossings_right" in t:
+            steps = ", ".join(
+                f"step {s}: {100 * v:.0f} %" for s, v in t["by_step_crossings_right"].items()
+            )
+            print(f"  the rope's crossings: {100 * t['crossings_right']:.0f} % ({steps})")
     out = Path(args.out_dir)
     summary = {
         "matched": str(args.matched),

@@ -70,9 +70,10 @@ def report(out_dir: Path, estimators: list[str], policies: list[str]) -> None:
     base = _outcomes(out_dir / "perfect" / "outcomes.jsonl")
     print(
         "\n| estimator | policy | n | success | 95 % Wilson | perfect | lost | gained | p "
-        "| errored | node error (mm) at decision 1 / 2 / 3 / 4 / 5 | shape error (mm), same |"
+        "| errored | node error (mm) at decision 1 / 2 / 3 / 4 / 5 | shape error (mm), same "
+        "| the rope's crossings (% of estimates), same |"
     )
-    print("|---|---|---:|---:|---|---:|---:|---:|---:|---:|---|---|")
+    print("|---|---|---:|---:|---|---:|---:|---:|---:|---:|---|---|---|")
     for name in estimators:
         rows = _outcomes(out_dir / name / "outcomes.jsonl")
         for policy in policies:
@@ -83,21 +84,24 @@ def report(out_dir: Path, estimators: list[str], policies: list[str]) -> None:
             lo, hi = wilson_interval(sum(bool(r["success"]) for r in mine.values()), len(mine))
             errors = _per_decision(mine.values(), "estimate_error_mm")
             shapes = _per_decision(mine.values(), "estimate_shape_mm")
+            crossings = _per_decision(mine.values(), "estimate_crossings_right", percent=True)
             rate = 100 * sum(bool(r["success"]) for r in mine.values()) / len(mine)
             print(
                 f"| {name} | {policy} | {len(mine)} | {rate:.1f} % | [{100 * lo:.1f}, "
                 f"{100 * hi:.1f}] | {100 * row.matched_rate:.1f} % | {row.lost} | {row.gained} | "
-                f"{row.p_value:.3g} | {row.errored} | {errors} | {shapes} |"
+                f"{row.p_value:.3g} | {row.errored} | {errors} | {shapes} | {crossings} |"
             )
 
 
-def _per_decision(records: Iterable[dict], key: str) -> str:
-    """The mean of a per-step list over the episodes, at each of the first five decisions."""
+def _per_decision(records: Iterable[dict], key: str, percent: bool = False) -> str:
+    """The mean of a per-step list over the episodes, at each of the first five decisions
+    (``percent``: a list of booleans, as the share true)."""
     per_step: list[list[float]] = [[] for _ in range(5)]
     for r in records:
         for i, e in enumerate(r.get(key, [])[:5]):
             per_step[i].append(float(e))
-    return " / ".join(f"{statistics.fmean(e):.1f}" if e else "-" for e in per_step)
+    scale, fmt = (100.0, ".0f") if percent else (1.0, ".1f")
+    return " / ".join(f"{scale * statistics.fmean(e):{fmt}}" if e else "-" for e in per_step)
 
 
 def main() -> int:

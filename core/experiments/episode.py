@@ -106,6 +106,9 @@ class EpisodeOutcome:
     # from each centreline to the other (what a cloud-only policy sees; a chain slid along the
     # rope has a node error but no shape error).
     estimate_shape_mm: tuple[float, ...] = ()
+    # With a state estimator: whether the estimate crossed itself as the rope did at each step
+    # (the same over/under crossing code; `RopeEstimate.crossings_right`).
+    estimate_crossings_right: tuple[bool, ...] = ()
 
     @classmethod
     def errored(
@@ -139,6 +142,11 @@ class EpisodeOutcome:
             **(
                 {"estimate_shape_mm": [round(e, 3) for e in self.estimate_shape_mm]}
                 if self.estimate_shape_mm
+                else {}
+            ),
+            **(
+                {"estimate_crossings_right": list(self.estimate_crossings_right)}
+                if self.estimate_crossings_right
                 else {}
             ),
         }
@@ -191,6 +199,11 @@ class EpisodeRecord:
                 float(s.info["estimate_shape_mm"])
                 for s in self.steps
                 if "estimate_shape_mm" in s.info
+            ),
+            tuple(
+                bool(s.info["estimate_crossings_right"])
+                for s in self.steps
+                if "estimate_crossings_right" in s.info
             ),
         )
 
@@ -295,6 +308,11 @@ def run_episode(
                 estimate_info = {
                     "estimate_error_mm": estimate.error_mm,
                     "estimate_shape_mm": estimate.shape_mm,
+                    **(
+                        {"estimate_crossings_right": estimate.crossings_right}
+                        if estimate.crossings_right is not None
+                        else {}
+                    ),
                 }
             scan = agent.scan(cloud)
             t_scan = time.perf_counter() - t0

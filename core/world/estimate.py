@@ -8,9 +8,12 @@ simulates in a *model world* (a `RopeWorld` with the agent's own physics) placed
 - ``state``: the full dynamic state (every link's pose and velocity), only from the `perfect`
   estimator, i.e. an oracle state estimate; the model adopts it exactly where its rope has the
   same links (count, length, radius), and otherwise places its own rope at rest along the nodes;
-- ``error_mm``: the mean distance of the estimated nodes to the true ones, and ``shape_mm``: the
+- ``error_mm``: the mean distance of the estimated nodes to the true ones, ``shape_mm``: the
   mean distance from each centreline to the other (a chain slid along the rope has a node error
-  but no shape error). A simulation knows the truth: both are reported, never used to decide.
+  but no shape error), and ``crossings_right``: whether the estimate's crossings, read as the
+  knot test reads them (over/under, in order along the rope), are the true rope's (a knot
+  simulated on a chain with other crossings is another knot, however small its shape error).
+  A simulation knows the truth: all three are reported, never used to decide.
 
 Estimators:
 
@@ -46,6 +49,7 @@ import numpy as np
 
 from knotlab.core.errors import InvalidInputError, parse_choice
 from knotlab.core.world.frames import ExecutionFrames, FrameRecorder
+from knotlab.core.world.knot import canonical_code, gauss_code
 from knotlab.core.world.observation import (
     TRACKER_NOISE,
     TRACKER_RADIUS,
@@ -96,6 +100,7 @@ class RopeEstimate:
     state: SimSnapshot | None = None
     error_mm: float = 0.0  # mean distance of the estimated nodes to the true ones
     shape_mm: float = 0.0  # mean distance from each centreline to the other
+    crossings_right: bool | None = None  # the true rope's crossing code (None: not measured)
 
     @property
     def is_exact(self) -> bool:
@@ -120,6 +125,12 @@ def shape_error_mm(estimate_k3: np.ndarray, truth_k3: np.ndarray) -> float:
     there = cKDTree(truth).query(est)[0].mean()
     back = cKDTree(est).query(truth)[0].mean()
     return float(500.0 * (there + back))
+
+
+def same_crossings(estimate_k3: np.ndarray, truth_k3: np.ndarray) -> bool:
+    """Whether two chains cross themselves alike: the same over/under crossing code, read from
+    either end (the code the knot test's stages are made of)."""
+    return canonical_code(gauss_code(estimate_k3)[0]) == canonical_code(gauss_code(truth_k3)[0])
 
 
 def place_estimate(model_world: World, estimate: RopeEstimate) -> None:
@@ -325,7 +336,13 @@ class TrackingEstimator:
         nodes = nodes + self._offset
         self._last = nodes
         truth = world.rope_nodes()
-        return RopeEstimate(nodes, None, node_error_mm(nodes, truth), shape_error_mm(nodes, truth))
+        return RopeEstimate(
+            nodes,
+            None,
+            node_error_mm(nodes, truth),
+            shape_error_mm(nodes, truth),
+            same_crossings(nodes, truth),
+        )
 
     @property
     def frame_dt(self) -> float | None:

@@ -83,6 +83,9 @@ def test_with_a_tracker_the_search_never_touches_the_worlds_state(tracker):
     errors = record.outcome().estimate_error_mm
     assert len(errors) == record.n_steps and all(0 < e < 50 for e in errors)
     assert "estimate_error_mm" in record.summary()
+    crossings = record.outcome().estimate_crossings_right
+    assert len(crossings) == record.n_steps and crossings[0]  # it starts on the true chain
+    assert record.summary()["estimate_crossings_right"] == list(crossings)
 
 
 def test_the_video_tracker_gets_the_worlds_frames_through_a_shared_memo_and_ends_the_same():

@@ -16,6 +16,7 @@ from knotlab.core.world.estimate import (
     make_estimator,
     node_error_mm,
     place_estimate,
+    same_crossings,
 )
 from knotlab.core.world.rope import perturb_rope, rope_length, straight_rope
 from knotlab.core.world.sim import RopeParams, RopeWorld
@@ -91,6 +92,7 @@ def test_the_tracker_starts_close_is_seeded_and_carries_its_estimate_through_a_s
         assert np.array_equal(runs[0][0], runs[1][0])  # same seed, same estimates
         assert np.array_equal(runs[0][1].nodes_k3, runs[1][1].nodes_k3)
         moved = runs[0][1]
+        assert first.crossings_right and moved.crossings_right  # a drag crosses nothing
         assert moved.error_mm < 15.0  # it followed the drag (the left end moved 15 cm)
         assert node_error_mm(runs[0][0], world.rope_nodes()) > 30.0
 
@@ -121,3 +123,30 @@ def test_a_long_estimate_with_a_steep_peak_still_becomes_a_rope_of_the_models_li
             placed = model.rope_nodes()
             assert rope_length(placed) == pytest.approx(1.0, rel=0.01)
             assert np.linalg.norm(np.diff(placed, axis=0), axis=1).max() < 1.25 * 0.025
+
+
+def _loops(k: int = 81, second_over: bool = True) -> np.ndarray:
+    """A rope along x with two loops (a prolate cycloid's two arches): each crossing's later pass
+    goes over, or at the second loop under with ``second_over=False``."""
+    t = np.linspace(-0.5, 1.5, k)  # the arches cross at t = -+0.29 and 1 -+ 0.29
+    x = t - 0.3 * np.sin(2 * np.pi * t)
+    y = -0.3 * np.cos(2 * np.pi * t)
+    z = np.full(k, 0.01)
+    z[np.abs(t - 0.29) < 0.06] = 0.02
+    z[np.abs(t - 1.29) < 0.06] = 0.02 if second_over else 0.0
+    return np.stack([x, y, z], axis=1)
+
+
+def test_same_crossings_reads_over_and_under_from_either_end_and_counts_crossings():
+    loops = _loops()
+    from knotlab.core.world.knot import gauss_code
+
+    assert gauss_code(loops)[1] == 2  # the helper's rope crosses itself twice
+    assert same_crossings(loops, loops[::-1].copy())  # read from the other end
+    assert same_crossings(loops + np.array([0.3, -0.2, 0.0]), loops)  # moved
+    assert not same_crossings(loops, _loops(second_over=False))  # one crossing the other way
+    one_loop = loops[:41]
+    assert gauss_code(one_loop)[1] == 1 and not same_crossings(loops, one_loop)
+    straight = straight_rope(41, 1.0, 0.01)
+    assert not same_crossings(one_loop, straight)
+    assert same_crossings(straight, straight[::-1].copy())
