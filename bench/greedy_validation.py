@@ -186,6 +186,7 @@ def main() -> int:
             lines.append(line)
     names = list(models)
     summary = {
+        "task": args.task,
         "level": args.level,
         "seed": seed,
         "starts": args.starts,
@@ -231,7 +232,10 @@ def _plot(summary: dict, path: Path) -> None:
     ax.set_xticks(range(len(names)), names)
     ax.set_ylim(0, 1)
     ax.set_ylabel("greedy success (Wilson 95 %)")
-    ax.set_title(f"{summary['level']} level, {summary['starts']} fresh validation starts")
+    ax.set_title(
+        f"{summary.get('task', 'overhand')}, {summary['level']} level, "
+        f"{summary['starts']} fresh validation starts"
+    )
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -180,6 +180,7 @@ def main() -> int:
             # that fits nothing leaves the stored machine as it is)
             path.write_text(json.dumps(report, indent=1, sort_keys=True))
         print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
+    report["task"] = args.task
     report["chosen"] = {lv: choose(report["models"], lv) for lv in LEVELS}
     path.write_text(json.dumps(report, indent=1, sort_keys=True))
     _plot(report, out / "levels.png")
@@ -220,7 +221,9 @@ def _plot(report: dict, path: Path) -> None:
     ax.set_xticks(range(len(LEVELS)), [f"{lv} level held-out starts" for lv in LEVELS])
     ax.set_ylabel("greedy success (Wilson 95 %)")
     ax.set_ylim(0, 1)
-    ax.set_title("Which labels train the greedy policy: by level")
+    ax.set_title(
+        f"Which labels train the greedy policy ({report.get('task', 'overhand')}): by level"
+    )
     ax.legend(title="trained on")
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
