@@ -88,6 +88,9 @@ fi
 # resumable, the committed models and scores are read back; it chose the hard level's model for
 # both). Needs both levels' labels and tries (`STOP=labels scripts/table1.sh hard`) and the
 # policy states (`bench/policy_states.py --rounds 2 --out-dir results/policy_states_main`).
+# Another task's level study is its own (results/TASK/level_models/, without policy states:
+# `MODEL=levels scripts/table1.sh --task figure8` after both levels' labels; the figure-eight's
+# chose both levels' labels for main and the hard level's for hard).
 # `own` (another task's default): the model of step 2, results/model_LEVEL.npz (the overhand
 # knot's previous Table I, now in results/archive/table1_model_731a_*). MODEL=FILE: that file.
 # A results folder refuses another model's outcomes: to bench another model, move the committed
@@ -101,17 +104,13 @@ model_of() {
     own) echo "${out}/model_${level}.npz" ;;
     levels)
       $bin/python -c "import json,sys; print(json.load(open(sys.argv[1]))['chosen'][sys.argv[2]])" \
-        "results/level_models/levels.json" "$1" | sed 's|^|results/level_models/model_|; s|$|.npz|'
+        "${out}/level_models/levels.json" "$1" | sed "s|^|${out}/level_models/model_|; s|\$|.npz|"
       ;;
     *) echo "$model_choice" ;;
   esac
 }
 if [ "$model_choice" = levels ]; then
-  if [ "$task" != overhand ]; then
-    echo "table1.sh: MODEL=levels is the overhand knot's level study" >&2
-    exit 2
-  fi
-  $bin/python bench/level_models.py --out-dir results/level_models --workers 2
+  $bin/python bench/level_models.py "${t[@]}" --out-dir "${out}/level_models" --workers 2
 fi
 share=()
 if [ -z "${SHARE:-}" ]; then

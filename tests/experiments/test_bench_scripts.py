@@ -147,6 +147,9 @@ def test_level_models_choose_per_level_by_held_out_greedy_then_top1(
     assert "| both | 1495 | 45/60 = 0.750 | 0.600 | 0.900 | 33/60 = 0.550 |" in text
     level_models._plot(report, tmp_path / "levels.png")
     assert (tmp_path / "levels.png").stat().st_size > 1000
+    # Each task's labels where scripts/table1.sh writes them.
+    assert level_models.results_dir("overhand") == project_root / "results"
+    assert level_models.results_dir("figure8") == project_root / "results" / "figure8"
 
 
 def test_policy_states_plot_and_table_show_rounds_refitted_with_their_tries(
