@@ -121,7 +121,13 @@ def results_dirs(root: Path = defaults.RESULTS_DIR, task: str = DEFAULT_TASK) ->
         if identity.get("task", DEFAULT_TASK) == task and replayable:
             found.append(str(run.parent))
     return sorted(
-        found, key=lambda d: (not d.endswith("_main"), not Path(d).name.startswith("table1"), d)
+        found,
+        key=lambda d: (
+            not d.endswith("_main"),
+            Path(d).name not in ("table1_main", "table1_hard"),  # the committed Table I itself
+            not Path(d).name.startswith("table1"),
+            d,
+        ),
     )
 
 
