@@ -94,7 +94,10 @@ def level_split(task, level: str, labels: Path) -> LevelSplit:
     """The level's executions split as bench/policy_states.py splits them (seed 0, a fifth)."""
     executions = _read(labels)
     if not executions:
-        raise SystemExit(f"{labels}: no labels (run scripts/label_hard.sh for the hard level)")
+        raise SystemExit(
+            f"{labels}: no labels (make them with `STOP=labels scripts/table1.sh "
+            f"--task TASK {level}`)"
+        )
     train_idx, val_idx = split_executions(len(executions), 0.2, 0)
     held = tuple(executions[i] for i in val_idx)
     held_ids = {e.task_id for e in held}
