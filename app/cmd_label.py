@@ -1,4 +1,4 @@
-"""`knotlab label --oracle`: label training starts with the simulation oracle, into the store."""
+"""`knotlab label --oracle|--search`: label training starts in simulation, into the store."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from knotlab.app.options import (
     add_task_argument,
     add_task_set_argument,
     check_input,
+    check_output,
     db_url,
     integer,
     library_file,
@@ -23,18 +24,30 @@ from knotlab.app.options import (
     task_set_file,
 )
 
+SEARCH_POLICIES = ("la1x10", "la2x5")  # the lookaheads of Table I
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `label` sub-command."""
     p = subparsers.add_parser(
         "label",
-        help="label training starts (oracle expert in simulation)",
+        help="label training starts (oracle expert or a lookahead's episodes, in simulation)",
         description="Label start states with an expert. --oracle plays the expert in simulation: "
         "candidates in registration-cost order, the first that can still reach a knot within "
         "the remaining steps is accepted (bounded search); dead ends are recorded. Results go "
         "to the labelling database; tasks already labelled there are skipped (resumable).",
     )
-    p.add_argument("--oracle", action="store_true", required=True, help="use the oracle expert")
+    expert = p.add_mutually_exclusive_group(required=True)
+    expert.add_argument("--oracle", action="store_true", help="use the oracle expert")
+    expert.add_argument(
+        "--search",
+        choices=SEARCH_POLICIES,
+        default=None,
+        help="label with a lookahead's own episodes (expert iteration): the search, valuing its "
+        "leaves with --model, plays each start; an episode that ends in the goal with no failed "
+        "step is a labelled execution (labeller search-POLICY), the others are stored without "
+        "steps. Not with --from-policy",
+    )
     add_task_argument(p)
     p.add_argument(
         "--split",
@@ -59,7 +72,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "start and let the oracle label every state it reaches after the start; each label "
         "records the policy, model and round that reached its state",
     )
-    add_flag(p, "--model", detail="with --from-policy: the model the policy ranks with")
+    add_flag(p, "--model", detail="with --from-policy or --search: the model the policy ranks with")
+    p.add_argument(
+        "--tries-out",
+        default=None,
+        help="with --search: a JSONL file (for `knotlab train --tries`) to append, per labelled "
+        "state, the search's first-level candidates that did not advance the task (they must "
+        "then lose by a margin floor); resumed when it holds this search's tries",
+    )
     p.add_argument(
         "--round",
         type=integer(1, maximum=1000),
@@ -95,10 +115,14 @@ def run(args: argparse.Namespace) -> int:
             "training starts may be labelled (the test set must stay unseen)"
         )
     selected = list(tasks) if args.tasks is None else list(tasks)[: args.tasks]
+    if args.search is not None:
+        return _run_search(args, library_path, library, selected)
+    if args.tries_out is not None:
+        raise InvalidInputError("--tries-out is used with --search only")
     if args.from_policy is not None:
         return _run_policy_states(args, library_path, library, selected)
     if args.model is not None:
-        raise InvalidInputError("--model is used with --from-policy only")
+        raise InvalidInputError("--model is used with --from-policy or --search only")
     t0 = time.perf_counter()
     solved = sims = dead = 0
     with open_store(args.db, persistent=True) as store:
@@ -208,6 +232,94 @@ def _run_policy_states(args: argparse.Namespace, library_path, library, selected
                     "rollout_knots": reached_knot,
                     "labelled_states": states,
                     "dead_ends": dead,
+                    "wall_s": round(wall, 1),
+                    "model_hash": model.content_hash(),
+                    "db": args.db,
+                }
+            )
+        )
+    return 0
+
+
+def _run_search(args: argparse.Namespace, library_path, library, selected: list) -> int:
+    """Label the starts with the search's own episodes into the store (resumable)."""
+    from pathlib import Path
+
+    from knotlab.core.errors import InvalidInputError
+    from knotlab.core.experiments.search_labels import label_search_tasks, search_execution_id
+    from knotlab.core.selection.compatibility import check_compatible
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.selection.tries import read_tries
+    from knotlab.core.tasks import get_task
+    from knotlab.labeling_db.store import open_store
+
+    if args.from_policy is not None:
+        raise InvalidInputError("--search labels the starts themselves; not with --from-policy")
+    if args.model is None:
+        raise InvalidInputError("--search needs --model (the model the search values with)")
+    prefix = search_execution_id(args.search, "")
+
+    def own_tries(path: Path) -> bool:  # this search's tries file, or a one-line refusal
+        foreign = sorted({e for e, _ in read_tries(path) if not e.startswith(prefix)})
+        if foreign:
+            raise InvalidInputError(
+                f"{path} holds tries of other executions ({foreign[0]}, ...): not this search's"
+            )
+        return True
+
+    tries_out = None
+    if args.tries_out is not None:
+        tries_out = check_output(
+            args.tries_out, flag="--tries-out", force=False, kind="tries file", suffixes=(),
+            resume=own_tries,
+        )  # fmt: skip
+    model_path = Path(args.model)
+    model = QModel.load(model_path)
+    check_compatible(library, model, get_task(task_of(args)))
+    t0 = time.perf_counter()
+    labelled = states = 0
+    with open_store(args.db, persistent=True) as store:
+        store.check_task(task_of(args))
+        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        todo = [t for t in selected if search_execution_id(args.search, t.task_id) not in stored]
+        store.register_library(library.content_hash(), task=task_of(args))
+        store.add_labeller(f"search-{args.search}", "oracle")
+        print(
+            f"{len(selected) - len(todo)} of {len(selected)} starts already labelled by "
+            f"{args.search} in {args.db}; playing it with model {model.content_hash()} on "
+            f"{len(todo)}",
+            file=sys.stderr,
+        )
+        results = label_search_tasks(
+            library_path,
+            model_path,
+            todo,
+            policy=args.search,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
+        for result in results:
+            if tries_out is not None and result.tries:  # before the label: a resume redoes both
+                tries_out.parent.mkdir(parents=True, exist_ok=True)
+                with tries_out.open("a", encoding="utf-8") as fh:
+                    fh.writelines(json.dumps(r.to_dict()) + "\n" for r in result.tries)
+            store.add_execution(result.execution, if_exists="skip")
+            labelled += bool(result.execution.steps)
+            states += len(result.execution.steps)
+    wall = time.perf_counter() - t0
+    print(
+        f"{args.search} reached the goal cleanly from {labelled}/{len(todo)} starts: "
+        f"{states} labelled states; {wall:.0f} s"
+    )
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "search": args.search,
+                    "starts": len(todo),
+                    "skipped_already_labelled": len(selected) - len(todo),
+                    "labelled_executions": labelled,
+                    "labelled_states": states,
                     "wall_s": round(wall, 1),
                     "model_hash": model.content_hash(),
                     "db": args.db,

@@ -258,3 +258,57 @@ def test_robust_tuning_chooses_the_best_configuration_within_the_time_budget(
     assert "| rla2x5k8 | 8 | 25 % | 4 | 4/4 = 100.0 % |" in text and "| 8.00 |" in text
     assert tuning.baseline_of("ala2x5k4s50") == "la2x5"
     assert tuning.report(folder, ["rla2x5k8"], 2.0) is None  # nothing within the budget
+
+
+def test_search_labels_read_knotted_rollouts_and_floor_only_the_candidates_that_did_not_advance(
+    project_root, tmp_path
+) -> None:
+    import json
+    from datetime import UTC, datetime
+
+    from knotlab.core.tasks import get_task
+    from knotlab.labeling_db.interchange import execution_to_dict, read_labels
+    from knotlab.labeling_db.records import StoredExecution
+
+    search_labels = load_bench_module(project_root, "search_labels")
+    oracle = [
+        item.execution for item in read_labels(project_root / "results/labels_oracle_main.jsonl")
+    ]
+    knotted = next(e for e in oracle if e.ended_in_knot and len(e.steps) == 3)
+    now = datetime.now(UTC)
+    tried = [
+        [  # step 0 from stage 0: one candidate advanced, one kept the stage, one failed
+            {"demo": "s000-t0", "stage": 1, "knot": False, "failure": None},
+            {"demo": "s001-t0", "stage": 0, "knot": False, "failure": None},
+            {"demo": "s002-t0", "stage": 1, "knot": False, "failure": "misgrasp"},
+        ],
+        [{"demo": "s000-t1", "stage": 1, "knot": False, "failure": None}],  # from stage 1: stayed
+        [{"demo": "s000-t2", "stage": 3, "knot": True, "failure": None}],
+    ]
+    lines = [
+        {
+            "task_id": "main-train-0009",
+            "knot": True,
+            "stages": [1, 2, 3],
+            "root_tries": tried,
+            "execution": execution_to_dict(
+                StoredExecution(knotted, started_at=now, finished_at=now)
+            ),
+        },
+        {
+            "task_id": "main-train-0003",
+            "knot": False,
+            "stages": [0],
+            "root_tries": [[]],
+            "execution": None,
+        },  # a start the search did not knot
+    ]
+    (tmp_path / "rollouts_main.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    back = search_labels.search_executions(tmp_path, "main")
+    assert [e.execution_id for e in back] == [knotted.execution_id]  # the failed one is no label
+    assert [s.chosen_demo for s in back[0].steps] == [s.chosen_demo for s in knotted.steps]
+    tries = search_labels.search_floor_tries(tmp_path, "main", get_task("overhand"))
+    eid = knotted.execution_id
+    assert [t.demo for t in tries[(eid, 0)].tried] == ["s001-t0", "s002-t0"]
+    assert [t.demo for t in tries[(eid, 1)].tried] == ["s000-t1"]  # stage 1 -> 1 did not advance
+    assert tries[(eid, 1)].stage_before == 1 and tries[(eid, 2)].tried == ()
