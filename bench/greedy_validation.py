@@ -224,12 +224,12 @@ def _plot(summary: dict, path: Path) -> None:
 
     res = summary["results"]
     names = list(res)
-    fig, ax = plt.subplots(figsize=(max(4, 1.3 * len(names)), 3.5))
+    fig, ax = plt.subplots(figsize=(max(4, 1.3 * len(names)), 4.2))
     for i, n in enumerate(names):
         r = res[n]
         ax.bar(i, r["rate"], color=f"C{i}")
         ax.plot([i, i], r["wilson"], color="black", lw=1.5)
-    ax.set_xticks(range(len(names)), names)
+    ax.set_xticks(range(len(names)), names, rotation=20, ha="right")  # long names must not overlap
     ax.set_ylim(0, 1)
     ax.set_ylabel("greedy success (Wilson 95 %)")
     ax.set_title(
