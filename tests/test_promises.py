@@ -136,6 +136,11 @@ def _argv(
             continue
         value = values.get(action.dest) or _value(command, action, files)
         argv += [value] if positional else [action.option_strings[0], value]
+    for group in PARSERS[command]._mutually_exclusive_groups:
+        # a required choice between flags (label's --oracle | --search): its first flag
+        first = group._group_actions[0]
+        if group.required and first.nargs == 0 and first.dest not in skip:
+            argv.append(first.option_strings[0])
     return argv
 
 
