@@ -20,6 +20,7 @@ from knotlab.app.options import (
     library_file,
     load_library,
     load_task_set,
+    reads,
     task_of,
     task_set_file,
 )
@@ -46,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="label with a lookahead's own episodes (expert iteration): the search, valuing its "
         "leaves with --model, plays each start; an episode that ends in the goal with no failed "
         "step is a labelled execution (labeller search-POLICY), the others are stored without "
-        "steps. Not with --from-policy",
+        "steps. With --from-policy the search plays from every state that policy reaches "
+        "instead (DAgger with the search as the expert)",
     )
     add_task_argument(p)
     p.add_argument(
@@ -68,11 +70,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--from-policy",
         choices=("greedy",),
         default=None,
-        help="label where this policy goes (DAgger-style): roll it out with --model from each "
-        "start and let the oracle label every state it reaches after the start; each label "
-        "records the policy, model and round that reached its state",
+        help="label where this policy goes (DAgger-style): roll it out with --model (with "
+        "--search: --policy-model) from each start and let the expert label every state it "
+        "reaches after the start; each label records the policy, model and round that reached "
+        "its state",
     )
     add_flag(p, "--model", detail="with --from-policy or --search: the model the policy ranks with")
+    reads(
+        p.add_argument(
+            "--policy-model",
+            default=None,
+            metavar="PATH",
+            help="with --search and --from-policy: the model the rolled-out policy ranks with "
+            "(default: --model, the search's)",
+        )
+    )
     p.add_argument(
         "--tries-out",
         default=None,
@@ -105,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     args.db = db_url(args)
     if args.model is not None:  # a missing model is named first, whatever else is wrong
         check_input(args.model, flag="--model", kind="model")
+    if args.policy_model is not None:
+        check_input(args.policy_model, flag="--policy-model", kind="model")
     task_path = task_set_file(args, args.split)
     library_path = library_file(args)
     tasks = load_task_set(task_path, args)
@@ -119,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_search(args, library_path, library, selected)
     if args.tries_out is not None:
         raise InvalidInputError("--tries-out is used with --search only")
+    if args.policy_model is not None:
+        raise InvalidInputError("--policy-model is used with --search and --from-policy only")
     if args.from_policy is not None:
         return _run_policy_states(args, library_path, library, selected)
     if args.model is not None:
@@ -253,10 +269,10 @@ def _run_search(args: argparse.Namespace, library_path, library, selected: list)
     from knotlab.core.tasks import get_task
     from knotlab.labeling_db.store import open_store
 
-    if args.from_policy is not None:
-        raise InvalidInputError("--search labels the starts themselves; not with --from-policy")
     if args.model is None:
         raise InvalidInputError("--search needs --model (the model the search values with)")
+    if args.policy_model is not None and args.from_policy is None:
+        raise InvalidInputError("--policy-model is used with --search and --from-policy only")
     prefix = search_execution_id(args.search, "")
 
     def own_tries(path: Path) -> bool:  # this search's tries file, or a one-line refusal
@@ -276,6 +292,8 @@ def _run_search(args: argparse.Namespace, library_path, library, selected: list)
     model_path = Path(args.model)
     model = QModel.load(model_path)
     check_compatible(library, model, get_task(task_of(args)))
+    if args.from_policy is not None:
+        return _run_policy_search(args, library_path, library, selected, model, tries_out)
     t0 = time.perf_counter()
     labelled = states = 0
     with open_store(args.db, persistent=True) as store:
@@ -322,6 +340,93 @@ def _run_search(args: argparse.Namespace, library_path, library, selected: list)
                     "labelled_states": states,
                     "wall_s": round(wall, 1),
                     "model_hash": model.content_hash(),
+                    "db": args.db,
+                }
+            )
+        )
+    return 0
+
+
+def _run_policy_search(
+    args: argparse.Namespace, library_path, library, selected: list, model, tries_out
+) -> int:
+    """The search labels the states the policy reaches from each start (resumable by start)."""
+    from pathlib import Path
+
+    from knotlab.core.experiments.search_labels import (
+        label_policy_state_search_tasks,
+        policy_search_prefix,
+    )
+    from knotlab.core.selection.compatibility import check_compatible
+    from knotlab.core.selection.qmodel import QModel
+    from knotlab.core.tasks import get_task
+    from knotlab.labeling_db.store import open_store
+
+    policy_model_path = Path(args.policy_model or args.model)
+    policy_model = QModel.load(policy_model_path)
+    check_compatible(library, policy_model, get_task(task_of(args)))
+
+    def prefix(task_id: str) -> str:
+        return policy_search_prefix(args.search, args.from_policy, args.round, task_id)
+
+    t0 = time.perf_counter()
+    reached = labelled = states = knots = 0
+    with open_store(args.db, persistent=True) as store:
+        store.check_task(task_of(args))
+        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        todo = [t for t in selected if not any(i.startswith(prefix(t.task_id)) for i in stored)]
+        store.register_library(library.content_hash(), task=task_of(args))
+        store.add_labeller(f"search-{args.search}", "oracle")
+        print(
+            f"round {args.round}: {len(selected) - len(todo)} of {len(selected)} starts already "
+            f"done in {args.db}; rolling {args.from_policy} with model "
+            f"{policy_model.content_hash()} out on {len(todo)}, {args.search} with model "
+            f"{model.content_hash()} labelling the states it reaches",
+            file=sys.stderr,
+        )
+        results = label_policy_state_search_tasks(
+            library_path,
+            args.model,
+            policy_model_path,
+            todo,
+            search=args.search,
+            from_policy=args.from_policy,
+            round_index=args.round,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
+        for result in results:
+            if tries_out is not None and result.tries:  # before the labels: a resume redoes both
+                tries_out.parent.mkdir(parents=True, exist_ok=True)
+                with tries_out.open("a", encoding="utf-8") as fh:
+                    fh.writelines(json.dumps(r.to_dict()) + "\n" for r in result.tries)
+            store.add_executions(list(result.executions), if_exists="skip")
+            reached += len(result.executions)
+            labelled += sum(bool(e.steps) for e in result.executions)
+            states += sum(len(e.steps) for e in result.executions)
+            knots += result.rollout_knot
+    wall = time.perf_counter() - t0
+    print(
+        f"round {args.round}: {args.from_policy} knotted {knots}/{len(todo)} rollouts; "
+        f"{args.search} reached the goal cleanly from {labelled}/{reached} reached states: "
+        f"{states} labelled states; {wall:.0f} s"
+    )
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "search": args.search,
+                    "from_policy": args.from_policy,
+                    "round": args.round,
+                    "starts": len(todo),
+                    "skipped_already_labelled": len(selected) - len(todo),
+                    "rollout_knots": knots,
+                    "reached_states": reached,
+                    "labelled_executions": labelled,
+                    "labelled_states": states,
+                    "wall_s": round(wall, 1),
+                    "model_hash": model.content_hash(),
+                    "policy_model_hash": policy_model.content_hash(),
                     "db": args.db,
                 }
             )

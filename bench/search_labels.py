@@ -12,9 +12,17 @@ levels' held-out starts exactly as `bench/level_models.py` does, so the rows are
 its table (whose scores it prints beside them). An expert-iteration step: the search improves on
 the model's one-step choice; the new model imitates the search.
 
-Subcommands (both resumable, same seeds, same files):
+Subcommands (resumable, same seeds, same files):
   rollout   lookahead episodes on the training starts -> <out>/rollouts_<level>.jsonl
+  starts    the training starts outside the held-out fifth as a task-set file
+            (<out>/starts_<level>.npz), for `knotlab label --task-set`
   fit       models from them, scored on held-out starts -> <out>/search.json, models, table
+
+A second step (DAgger with the search as the expert): `knotlab label --search la2x5 --from-policy
+greedy --policy-model <out>/model_search-both+floor.npz --task-set <out>/starts_main.npz
+--tries-out <out>/tries_dagger_main.jsonl` labels the states greedy reaches with the search's
+own episodes from there; `knotlab labels export` writes them to <out>/labels_dagger_main.jsonl,
+and `fit` then adds the arm that trains on them too.
 
 Usage: .venv/bin/python bench/search_labels.py rollout --out-dir results/search_labels
        .venv/bin/python bench/search_labels.py fit --out-dir results/search_labels
@@ -43,7 +51,7 @@ from level_models import LEVELS, held_out_ranking, level_split, results_dir  # n
 from policy_states import fit, greedy_success  # noqa: E402
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
-from knotlab.core.demos.tasks import RopeTask  # noqa: E402
+from knotlab.core.demos.tasks import RopeTask, TaskSet  # noqa: E402
 from knotlab.core.experiments.search_labels import (  # noqa: E402
     execution_from_episode,
     floor_tries,
@@ -203,12 +211,55 @@ def search_executions(out: Path, level: str) -> list[LabelledExecution]:
         os.unlink(fh.name)
 
 
+def dagger_files(out: Path, level: str) -> tuple[Path, Path]:
+    """The level's policy states labelled by the search (`knotlab labels export`) and their
+    floor tries (`knotlab label --tries-out`)."""
+    return out / f"labels_dagger_{level}.jsonl", out / f"tries_dagger_{level}.jsonl"
+
+
+def dagger_executions(out: Path, level: str) -> list[LabelledExecution]:
+    """The level's policy states the search labelled (those it knotted from), by id."""
+    labels, _ = dagger_files(out, level)
+    if not labels.exists():
+        return []
+    found = [item.execution for item in read_labels(labels) if item.execution.steps]
+    return sorted(found, key=lambda e: e.execution_id)
+
+
+def cmd_starts(args: argparse.Namespace) -> int:
+    """Write each level's training starts outside the held-out fifth as a task-set file."""
+    task = get_task(args.task)
+    files = results_dir(args.task)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    for level in LEVELS:
+        split = level_split(task, level, files / f"labels_oracle_{level}.jsonl")
+        held = {s.task_id for s in split.held_out_starts}
+        full = task.files.load_task_set(level, "train")
+        kept = TaskSet([s for s in full if s.task_id not in held], dict(full.metadata))
+        path = args.out_dir / f"starts_{level}.npz"
+        if path.exists() and TaskSet.load(path).content_hash() == kept.content_hash():
+            print(f"{path}: {len(kept)} starts (already written)")
+            continue
+        kept.save(path)
+        print(f"{path}: {len(kept)} of {len(full)} training starts (held-out fifth left out)")
+    return 0
+
+
 ARMS: dict[str, tuple[str, ...]] = {
     # parts: "search-<level>" the search's executions, "oracle-hard" the committed model's labels
     "search-hard": ("search-hard",),
     "search-both": ("search-main", "search-hard"),
     "search-both+floor": ("search-main", "search-hard", "floor"),
     "oracle-hard+search-both": ("oracle-hard", "search-main", "search-hard"),
+    # the second step: + the states greedy (the model above) reached, labelled by the search
+    "search-both+dagger-main+floor": ("search-main", "search-hard", "dagger-main", "floor"),
+    "search-both+dagger-both+floor": (
+        "search-main",
+        "search-hard",
+        "dagger-main",
+        "dagger-hard",
+        "floor",
+    ),
 }
 
 
@@ -246,10 +297,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
     parts: dict[str, list[LabelledExecution]] = {
         "oracle-hard": list(splits["hard"].train),
         **{f"search-{lv}": search_executions(out, lv) for lv in LEVELS},
+        **{f"dagger-{lv}": dagger_executions(out, lv) for lv in LEVELS},
     }
     for lv in LEVELS:
         leaked = [e.task_id for e in parts[f"search-{lv}"] if e.task_id in held_tasks]
         assert not leaked, f"search executions from held-out starts: {leaked[:3]}"
+        starts = {e.metadata["reached_by"]["start_task_id"] for e in parts[f"dagger-{lv}"]}
+        assert not starts & held_tasks, f"policy states from held-out starts: {lv}"
     oracle_tries = read_tries(files / "tries_hard.jsonl")
     for name, arm in ARMS.items():
         rec = report["models"].get(name, {})
@@ -257,12 +311,18 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS):
             print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
             continue
+        missing = [p for p in arm if p.startswith("dagger-") and not parts[p]]
+        if missing:
+            print(f"{name}: not fitted, no labels for {', '.join(missing)} yet", flush=True)
+            continue
         t0 = time.perf_counter()
         executions = [e for p in arm if p != "floor" for e in parts[p]]
         tries = dict(oracle_tries) if "oracle-hard" in arm else {}
         if "floor" in arm:
             for lv in LEVELS:
                 tries.update(search_floor_tries(out, lv, task))
+                if f"dagger-{lv}" in arm:
+                    tries.update(read_tries(dagger_files(out, lv)[1]))
         fit(executions, library, held_ids, tries, model_path, args.workers, C=C, D=D)
         rec = {
             "parts": list(arm),
@@ -321,6 +381,10 @@ if __name__ == "__main__":
     r.add_argument("--workers", type=int, default=2)
     r.add_argument("--limit", type=int, default=None, help="at most this many starts a level")
     r.set_defaults(func=cmd_rollout)
+    st = sub.add_parser("starts")
+    st.add_argument("--out-dir", type=Path, required=True)
+    st.add_argument("--task", default="overhand")
+    st.set_defaults(func=cmd_starts)
     f = sub.add_parser("fit")
     f.add_argument("--out-dir", type=Path, required=True)
     f.add_argument("--task", default="overhand")

@@ -31,6 +31,7 @@ from knotlab.core.world.trajectory import GripperTrajectory
 
 if TYPE_CHECKING:  # the agent builds episodes
     from knotlab.core.agent import Agent
+    from knotlab.core.world.sim import SimSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -241,9 +242,13 @@ def run_episode(
     memo: OutcomeMemo | None = None,
     model_world: World | None = None,
     estimator: StateEstimator | None = None,
+    start_snapshot: SimSnapshot | None = None,
 ) -> EpisodeRecord:
     """Reset the world to the start rope and act with ``agent`` until its task's goal or
     ``max_steps`` (default: the task's step limit).
+
+    ``start_snapshot``: begin in this full simulator state (a state another episode reached,
+    velocities and contacts included) instead of the rope at rest along ``start_nodes_k3``.
 
     ``memo``: simulated outcomes shared with the other policies run on this task (same start,
     same seed), so an execution another policy already simulated is restored, not simulated
@@ -261,7 +266,10 @@ def run_episode(
     error: str | None = None
     limit = agent.task.step_limit if max_steps is None else max_steps
     try:
-        world.reset(start_nodes_k3)
+        if start_snapshot is None:
+            world.reset(start_nodes_k3)
+        else:
+            world.restore(start_snapshot)
     except _NUMERIC_ERRORS as exc:  # a bad start state is this episode's failure, not the run's
         log.warning("task %s: cannot reset to its start state: %s", task_id, exc)
         return EpisodeRecord(

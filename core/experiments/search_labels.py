@@ -11,6 +11,12 @@ The search's first level (each root candidate simulated once from the state) als
 candidates did not advance the task's stage; as tries they ask the learner to rank those below
 the choice by a margin floor, while candidates that advanced stay ordinary margin rows (the
 search ranked them below its choice by what followed, which is the point of these labels).
+
+Labels where the policy goes, with the search as the expert (DAgger with a search expert): roll
+a learned policy (greedy) out from the start, and from every state it reaches after the start
+play the search to the goal with the steps that remain; each search episode that reaches the goal
+cleanly is a labelled execution beginning in the state the policy reached, and records (as the
+oracle's policy-state labels do) which policy, model and round reached it.
 """
 
 from __future__ import annotations
@@ -24,10 +30,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from knotlab.core.demos.tasks import RopeTask
-from knotlab.core.experiments.episode import EpisodeRecord
+from knotlab.core.experiments.episode import EpisodeRecord, run_episode
+from knotlab.core.experiments.labeller import start_rope_hash
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
-from knotlab.core.selection.labels import LabelledExecution, LabelledStep
+from knotlab.core.selection.labels import REACHED_BY, LabelledExecution, LabelledStep
 from knotlab.core.selection.tries import StateTries, TriedDemo
 
 if TYPE_CHECKING:
@@ -114,12 +121,16 @@ def search_execution_id(policy: str, task_id: str) -> str:
 
 @dataclass(frozen=True)
 class SearchLabelJob:
-    """One training start to play the search from."""
+    """One training start to play the search from (or, with ``from_policy``, to roll the policy
+    out from and let the search label the states it reaches)."""
 
     library_path: str
     model_path: str
     policy: str
     start: RopeTask
+    from_policy: str | None = None
+    policy_model_path: str | None = None
+    round_index: int = 1
 
 
 @dataclass(frozen=True)
@@ -135,15 +146,16 @@ class SearchLabelResult:
     wall_s: float
 
 
-def label_with_search(agent: Agent, world: RopeWorld, start: RopeTask) -> SearchLabelResult:
-    """Play ``agent``'s search from the start; a knotted clean episode is the label."""
-    t0 = time.perf_counter()
-    record = agent.run_episode(world, start)
+def _search_label(
+    agent: Agent, record: EpisodeRecord, eid: str, task_id: str, meta: dict
+) -> tuple[LabelledExecution, tuple[StateTries, ...]]:
+    """The episode's labelled execution (no steps when it is no demonstration, so a resumed run
+    does not replay it) and its states' floor tries."""
     keys = agent.library.keys
     assert agent.model is not None  # a search values its leaves with the model
     model_hash = agent.model.content_hash()
-    eid = search_execution_id(agent.name, start.task_id)
     meta = {
+        **meta,
         "labelled_by": {"policy": agent.name, "model": model_hash},
         "search_knotted": bool(record.success),
         "search_chosen": [s.chosen_key for s in record.steps],
@@ -157,22 +169,29 @@ def label_with_search(agent: Agent, world: RopeWorld, start: RopeTask) -> Search
         library_hash=agent.library.content_hash(),
         metadata=meta,
     )
-    tries: tuple[StateTries, ...] = ()
-    if execution is None:  # recorded without steps, so a resumed run does not replay it
-        execution = LabelledExecution(
+    if execution is None:
+        empty = LabelledExecution(
             eid,
             "oracle",
             f"search-{agent.name}",
             (),
             False,
-            task_id=start.task_id,
+            task_id=task_id,
             library_hash=agent.library.content_hash(),
             metadata=meta,
         )
-    else:
-        before = [agent.task.stage(s.rope_nodes_k3).stage for s in execution.steps]
-        roots = [root_tries(s.info, keys) for s in record.steps]
-        tries = tuple(floor_tries(eid, before, roots))
+        return empty, ()
+    before = [agent.task.stage(s.rope_nodes_k3).stage for s in execution.steps]
+    roots = [root_tries(s.info, keys) for s in record.steps]
+    return execution, tuple(floor_tries(eid, before, roots))
+
+
+def label_with_search(agent: Agent, world: RopeWorld, start: RopeTask) -> SearchLabelResult:
+    """Play ``agent``'s search from the start; a knotted clean episode is the label."""
+    t0 = time.perf_counter()
+    record = agent.run_episode(world, start)
+    eid = search_execution_id(agent.name, start.task_id)
+    execution, tries = _search_label(agent, record, eid, start.task_id, {})
     return SearchLabelResult(
         start.task_id,
         execution,
@@ -183,23 +202,117 @@ def label_with_search(agent: Agent, world: RopeWorld, start: RopeTask) -> Search
     )
 
 
-def _build(key: tuple[str, str, str]) -> tuple[RopeWorld, Agent]:
+def policy_search_prefix(search: str, policy: str, round_index: int, task_id: str) -> str:
+    """The execution-id prefix of one start's policy states labelled by the search."""
+    return f"{search_execution_id(search, '')}{policy}-r{round_index}-{task_id}-"
+
+
+@dataclass(frozen=True)
+class PolicySearchResult:
+    """One start's rollout of the policy and the search's labels of the states it reached."""
+
+    task_id: str
+    executions: tuple[LabelledExecution, ...]
+    tries: tuple[StateTries, ...]
+    rollout_knot: bool
+    chosen: tuple[str, ...]
+    wall_s: float
+
+
+def label_policy_states_with_search(
+    policy_agent: Agent,
+    search_agent: Agent,
+    world: RopeWorld,
+    start: RopeTask,
+    *,
+    round_index: int,
+) -> PolicySearchResult:
+    """Roll ``policy_agent`` out from the start; from each state it reaches after the start, the
+    search plays to the goal with the steps left, and its clean knotted episode is the label."""
+    t0 = time.perf_counter()
+    limit = policy_agent.task.step_limit
+    world.reset(start.start_nodes_k3)
+    visited = []  # (step index, snapshot, rope nodes) of the states reached after the start
+    chosen: list[str] = []
+    knot = False
+    for step in range(limit):
+        if step > 0:
+            visited.append((step, world.snapshot(), world.rope_nodes()))
+        decision = policy_agent.choose(world, step_index=step)
+        outcome = policy_agent.act(world, decision.action)
+        chosen.append(policy_agent.library.keys[decision.action])
+        if outcome.knot:
+            knot = True
+            break
+        if outcome.exploded:
+            break
+    model = policy_agent.model
+    reached = {
+        "policy": policy_agent.name,
+        "model": None if model is None else model.content_hash(),
+        "round": round_index,
+        "start_task_id": start.task_id,
+        "start_rope_hash": start_rope_hash(start.start_nodes_k3),
+    }
+    prefix = policy_search_prefix(search_agent.name, policy_agent.name, round_index, start.task_id)
+    executions: list[LabelledExecution] = []
+    tries: list[StateTries] = []
+    for step, snapshot, nodes in visited:
+        task_id = f"{start.task_id}@{policy_agent.name}-r{round_index}-t{step}"
+        record = run_episode(
+            search_agent,
+            world,
+            nodes,
+            task_id=task_id,
+            seed=start.seed,
+            max_steps=limit - step,
+            start_snapshot=snapshot,
+        )
+        meta = {REACHED_BY: {**reached, "step": step, "chosen_before": chosen[:step]}}
+        execution, state_tries = _search_label(
+            search_agent, record, f"{prefix}t{step}", task_id, meta
+        )
+        executions.append(execution)
+        tries.extend(state_tries)
+    return PolicySearchResult(
+        start.task_id,
+        tuple(executions),
+        tuple(tries),
+        knot,
+        tuple(chosen),
+        time.perf_counter() - t0,
+    )
+
+
+def _build(
+    key: tuple[str, str, str, str | None, str | None],
+) -> tuple[RopeWorld, Agent, Agent | None]:
+    """A world, the search's agent and (for policy states) the rolled-out policy's, per process."""
     from knotlab.core.agent import Agent
     from knotlab.core.demos.library import DemoLibrary
     from knotlab.core.selection.qmodel import QModel
     from knotlab.core.world.sim import RopeWorld
 
-    library_path, model_path, policy = key
+    library_path, model_path, policy, from_policy, policy_model_path = key
     library = DemoLibrary.load(library_path)
-    return RopeWorld(), Agent(library, QModel.load(Path(model_path)), policy)
+    search = Agent(library, QModel.load(Path(model_path)), policy)
+    rolled = None
+    if from_policy is not None and policy_model_path is not None:
+        rolled = Agent(library, QModel.load(Path(policy_model_path)), from_policy)
+    return RopeWorld(), search, rolled
 
 
 _TOOLS = PerProcess(_build)
 
 
-def _job(job: SearchLabelJob) -> SearchLabelResult:
-    world, agent = _TOOLS.get((job.library_path, job.model_path, job.policy))
-    return label_with_search(agent, world, job.start)
+def _job(job: SearchLabelJob) -> SearchLabelResult | PolicySearchResult:
+    key = (job.library_path, job.model_path, job.policy, job.from_policy, job.policy_model_path)
+    world, agent, policy_agent = _TOOLS.get(key)
+    if policy_agent is None:
+        return label_with_search(agent, world, job.start)
+    return label_policy_states_with_search(
+        policy_agent, agent, world, job.start, round_index=job.round_index
+    )
 
 
 def label_search_tasks(
@@ -217,4 +330,38 @@ def label_search_tasks(
     jobs = [SearchLabelJob(str(library_path), str(model_path), policy, t) for t in tasks]
     desc = f"{policy} labels"
     for _, result in imap_processes(_job, jobs, workers=workers, desc=desc, progress=progress):
+        assert isinstance(result, SearchLabelResult)
+        yield result
+
+
+def label_policy_state_search_tasks(
+    library_path: str | Path,
+    model_path: str | Path,
+    policy_model_path: str | Path,
+    tasks: Iterable[RopeTask],
+    *,
+    search: str,
+    from_policy: str = "greedy",
+    round_index: int = 1,
+    workers: int | None = None,
+    progress: bool = True,
+) -> Iterator[PolicySearchResult]:
+    """Yield each start's policy states labelled by the search (completion order)."""
+    from knotlab.core.parallel import imap_processes
+
+    jobs = [
+        SearchLabelJob(
+            str(library_path),
+            str(model_path),
+            search,
+            t,
+            from_policy,
+            str(policy_model_path),
+            round_index,
+        )
+        for t in tasks
+    ]
+    desc = f"{from_policy} states labelled by {search}, round {round_index}"
+    for _, result in imap_processes(_job, jobs, workers=workers, desc=desc, progress=progress):
+        assert isinstance(result, PolicySearchResult)
         yield result

@@ -175,6 +175,9 @@ def build_training_data(
     return TrainingData(tuple(states), tuple(pairs), tuple(goals), tuple(dead))
 
 
+CLARABEL_MAX_ITER = 1000
+
+
 @dataclass
 class MaxMarginQLearner:
     """Fits a QModel by max-margin structured prediction plus Bellman (ALP) constraints."""
@@ -236,6 +239,15 @@ class MaxMarginQLearner:
         landmarks = getattr(featurizer, "landmarks", None)
         self.model_ = QModel(w, w0, mean_d, scale_d, spec, hyper, metrics, landmarks)
         return self.model_
+
+    def _options(self) -> dict:
+        """The solver's options: CLARABEL's iteration cap raised above its default."""
+        # CLARABEL stops at 200 interior-point iterations by default; pooled label sets of a few
+        # thousand states (over 300,000 margin rows) can need more. A fit that converges under
+        # 200 takes the same iterations either way, so its model is unchanged.
+        if self.solver == "CLARABEL":
+            return {"max_iter": CLARABEL_MAX_ITER, **self.solver_options}
+        return dict(self.solver_options)
 
     def _check_hyperparameters(self) -> None:
         for name in ("C", "D", "margin_scale"):
@@ -315,7 +327,7 @@ class MaxMarginQLearner:
             with warnings.catch_warnings():
                 # An inaccurate solve is reported below as a SolverError naming the status.
                 warnings.simplefilter("ignore", UserWarning)
-                problem.solve(solver=self.solver, verbose=self.verbose, **self.solver_options)
+                problem.solve(solver=self.solver, verbose=self.verbose, **self._options())
         except cp.error.SolverError as exc:
             raise SolverError(f"QP solver {self.solver} failed: {exc}") from exc
         if problem.status not in (cp.OPTIMAL,):

@@ -50,7 +50,18 @@ def test_search_label_misuse_gets_one_line_and_writes_nothing(tmp_path, capsys):
     foreign.write_text(json.dumps(line) + "\n")
     cases = [
         (["label", "--search", "la2x5", "--db", db], "--search needs --model"),
-        (_argv(db, "--from-policy", "greedy"), "not with --from-policy"),
+        (
+            _argv(db, "--policy-model", str(MODEL)),
+            "--policy-model is used with --search and --from-policy only",
+        ),
+        (
+            ["label", "--oracle", "--policy-model", str(MODEL), "--db", db],
+            "--policy-model is used with --search and --from-policy only",
+        ),
+        (
+            _argv(db, "--from-policy", "greedy", "--policy-model", str(tmp_path / "none.npz")),
+            "--policy-model",
+        ),
         (
             ["label", "--oracle", "--tries-out", str(tmp_path / "t.jsonl"), "--db", db],
             "--tries-out is used with --search only",
@@ -65,3 +76,52 @@ def test_search_label_misuse_gets_one_line_and_writes_nothing(tmp_path, capsys):
     assert not (tmp_path / "l.db").exists() or not open_store(db).training_executions(
         include_unfinished=True
     )
+
+
+def test_the_search_labels_the_states_greedy_reaches_exactly_as_greedy_left_them(tmp_path, capsys):
+    """DAgger with the search as the expert: each reached state is labelled from the simulator
+    state greedy left (replayed here), and records what reached it."""
+    from knotlab.core.agent import Agent
+    from knotlab.core.world.sim import RopeWorld
+
+    db = f"sqlite:///{tmp_path / 'l.db'}"
+    tries = tmp_path / "tries.jsonl"
+    argv = ["label", "--search", "la1x10", "--model", str(MODEL), "--from-policy", "greedy",
+            "--round", "2", "--tasks", "1", "--db", db, "--workers", "1", "--no-progress",
+            "--json", "--tries-out", str(tries)]  # fmt: skip
+    assert main(argv) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    model_hash = QModel.load(MODEL).content_hash()
+    assert summary["policy_model_hash"] == summary["model_hash"] == model_hash
+    with open_store(db) as store:
+        executions = store.training_executions(include_unfinished=True)
+    task = get_task("overhand")
+    start = task.files.load_task_set("main", "train")[0]
+    greedy = Agent.default("greedy")
+    with RopeWorld() as world:
+        world.reset(start.start_nodes_k3)
+        replay = []  # the rope before each of greedy's steps after the first
+        for step in range(task.step_limit):
+            if step:
+                replay.append(world.rope_nodes())
+            outcome = greedy.act(world, greedy.choose(world, step_index=step).action)
+            if outcome.knot or outcome.exploded:
+                break
+    assert summary["reached_states"] == len(executions) == len(replay) >= 1
+    for ex in sorted(executions, key=lambda e: e.execution_id):
+        step = ex.metadata["reached_by"]["step"]
+        assert ex.execution_id == f"search-la1x10-greedy-r2-{start.task_id}-t{step}"
+        assert ex.metadata["reached_by"]["policy"] == "greedy"
+        assert ex.metadata["reached_by"]["round"] == 2
+        assert ex.metadata["labelled_by"] == {"policy": "la1x10", "model": model_hash}
+        assert ex.task_id == f"{start.task_id}@greedy-r2-t{step}"
+        if ex.steps:  # the search's label begins in the very state greedy reached
+            assert ex.ended_in_knot and len(ex.steps) <= task.step_limit - step
+            assert ex.steps[0].rope_nodes_k3 is not None
+            assert abs(ex.steps[0].rope_nodes_k3 - replay[step - 1]).max() < 1e-4
+    assert summary["labelled_states"] == sum(len(e.steps) for e in executions)
+    if summary["labelled_states"]:
+        assert read_tries(tries)
+    # resumable: the start is done
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["starts"] == 0

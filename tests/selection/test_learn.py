@@ -90,6 +90,17 @@ def test_solver_iteration_limit_raises_clear_error():
         learner.fit(data)
 
 
+def test_the_raised_iteration_cap_changes_no_fit_that_converged_under_the_old_one():
+    """CLARABEL's own cap is 200 iterations; the learner allows more (large pooled label sets
+    need them), and a fit that converges under 200 is the same model either way."""
+    data = _toy_separable(n_states=20)
+    raised = MaxMarginQLearner(C=100.0).fit(data)
+    capped = MaxMarginQLearner(C=100.0, solver_options={"max_iter": 200}).fit(data)
+    assert np.array_equal(raised.weights_d, capped.weights_d) and raised.bias == capped.bias
+    assert MaxMarginQLearner()._options()["max_iter"] > 200
+    assert MaxMarginQLearner(solver="SCS")._options() == {}
+
+
 def test_bad_inputs_are_rejected():
     with pytest.raises(InvalidInputError, match="non-finite"):
         LabelledState(np.array([[np.nan, 1.0]]), 0, np.zeros(1))
