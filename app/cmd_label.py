@@ -257,6 +257,15 @@ def _run_policy_states(args: argparse.Namespace, library_path, library, selected
     return 0
 
 
+def _append_tries(path, tries) -> None:
+    """Append the states' tries to the --tries-out file (if one was given)."""
+    if path is None or not tries:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a", encoding="utf-8") as fh:
+        fh.writelines(json.dumps(r.to_dict()) + "\n" for r in tries)
+
+
 def _run_search(args: argparse.Namespace, library_path, library, selected: list) -> int:
     """Label the starts with the search's own episodes into the store (resumable)."""
     from pathlib import Path
@@ -317,10 +326,7 @@ def _run_search(args: argparse.Namespace, library_path, library, selected: list)
             progress=not args.no_progress,
         )
         for result in results:
-            if tries_out is not None and result.tries:  # before the label: a resume redoes both
-                tries_out.parent.mkdir(parents=True, exist_ok=True)
-                with tries_out.open("a", encoding="utf-8") as fh:
-                    fh.writelines(json.dumps(r.to_dict()) + "\n" for r in result.tries)
+            _append_tries(tries_out, result.tries)  # before the label: a resume redoes both
             store.add_execution(result.execution, if_exists="skip")
             labelled += bool(result.execution.steps)
             states += len(result.execution.steps)
@@ -396,10 +402,7 @@ def _run_policy_search(
             progress=not args.no_progress,
         )
         for result in results:
-            if tries_out is not None and result.tries:  # before the labels: a resume redoes both
-                tries_out.parent.mkdir(parents=True, exist_ok=True)
-                with tries_out.open("a", encoding="utf-8") as fh:
-                    fh.writelines(json.dumps(r.to_dict()) + "\n" for r in result.tries)
+            _append_tries(tries_out, result.tries)  # before the labels: a resume redoes both
             store.add_executions(list(result.executions), if_exists="skip")
             reached += len(result.executions)
             labelled += sum(bool(e.steps) for e in result.executions)

@@ -35,7 +35,7 @@ from knotlab.core.selection.labels import REACHED_BY, LabelledExecution
 if TYPE_CHECKING:
     from knotlab.core.agent import Agent
     from knotlab.core.demos.tasks import RopeTask
-    from knotlab.core.world.sim import RopeWorld
+    from knotlab.core.world.sim import RopeWorld, SimSnapshot
 
 DEFAULT_ORACLE = OracleParams()
 
@@ -71,6 +71,50 @@ class PolicyStateResult:
     wall_s: float
 
 
+@dataclass(frozen=True)
+class Rollout:
+    """A policy's episode from a start: the states it reached after the start (step index, full
+    simulator snapshot, rope nodes), the demos it chose, and whether it tied the knot."""
+
+    visited: tuple[tuple[int, SimSnapshot, np.ndarray], ...]
+    chosen: tuple[str, ...]
+    knot: bool
+
+
+def roll_out(policy_agent: Agent, world: RopeWorld, start_nodes_k3: np.ndarray) -> Rollout:
+    """Play the policy from the start to the goal, an explosion or the step limit."""
+    world.reset(start_nodes_k3)
+    visited = []
+    chosen: list[str] = []
+    knot = False
+    for step in range(policy_agent.task.step_limit):
+        if step > 0:
+            visited.append((step, world.snapshot(), world.rope_nodes()))
+        decision = policy_agent.choose(world, step_index=step)
+        outcome = policy_agent.act(world, decision.action)
+        chosen.append(policy_agent.library.keys[decision.action])
+        if outcome.knot:
+            knot = True
+            break
+        if outcome.exploded:
+            break
+    return Rollout(tuple(visited), tuple(chosen), knot)
+
+
+def reached_by(
+    policy_agent: Agent, round_index: int, task_id: str, start_nodes_k3: np.ndarray
+) -> dict:
+    """What reached a rollout's states: the policy, its model, the round and the start."""
+    model = policy_agent.model
+    return {
+        "policy": policy_agent.name,
+        "model": None if model is None else model.content_hash(),
+        "round": round_index,
+        "start_task_id": task_id,
+        "start_rope_hash": start_rope_hash(start_nodes_k3),
+    }
+
+
 def label_policy_states(
     policy_agent: Agent,
     oracle_agent: Agent,
@@ -84,32 +128,12 @@ def label_policy_states(
     """Roll ``policy_agent`` out from the start; label each visited state with the oracle."""
     t0 = time.perf_counter()
     limit = policy_agent.task.step_limit
-    world.reset(start_nodes_k3)
-    visited = []  # (step index, snapshot) of states the policy reached after the start
-    chosen: list[str] = []
-    knot = False
-    for step in range(limit):
-        if step > 0:
-            visited.append((step, world.snapshot()))
-        decision = policy_agent.choose(world, step_index=step)
-        outcome = policy_agent.act(world, decision.action)
-        chosen.append(policy_agent.library.keys[decision.action])
-        if outcome.knot:
-            knot = True
-            break
-        if outcome.exploded:
-            break
-    model = policy_agent.model
-    reached = {
-        "policy": policy_agent.name,
-        "model": None if model is None else model.content_hash(),
-        "round": round_index,
-        "start_task_id": task_id,
-        "start_rope_hash": start_rope_hash(start_nodes_k3),
-    }
+    rollout = roll_out(policy_agent, world, start_nodes_k3)
+    chosen = list(rollout.chosen)
+    reached = reached_by(policy_agent, round_index, task_id, start_nodes_k3)
     executions = []
     sims = 0
-    for step, snapshot in visited:
+    for step, snapshot, _ in rollout.visited:
         steps, dead, used, exhausted = oracle_from(
             oracle_agent, world, snapshot, steps_left=limit - step, params=params
         )
@@ -137,7 +161,7 @@ def label_policy_states(
     return PolicyStateResult(
         task_id,
         tuple(executions),
-        knot,
+        rollout.knot,
         len(chosen),
         tuple(chosen),
         sims,

@@ -31,7 +31,7 @@ import numpy as np
 
 from knotlab.core.demos.tasks import RopeTask
 from knotlab.core.experiments.episode import EpisodeRecord, run_episode
-from knotlab.core.experiments.labeller import start_rope_hash
+from knotlab.core.experiments.policy_states import reached_by, roll_out
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import REACHED_BY, LabelledExecution, LabelledStep
@@ -231,33 +231,13 @@ def label_policy_states_with_search(
     search plays to the goal with the steps left, and its clean knotted episode is the label."""
     t0 = time.perf_counter()
     limit = policy_agent.task.step_limit
-    world.reset(start.start_nodes_k3)
-    visited = []  # (step index, snapshot, rope nodes) of the states reached after the start
-    chosen: list[str] = []
-    knot = False
-    for step in range(limit):
-        if step > 0:
-            visited.append((step, world.snapshot(), world.rope_nodes()))
-        decision = policy_agent.choose(world, step_index=step)
-        outcome = policy_agent.act(world, decision.action)
-        chosen.append(policy_agent.library.keys[decision.action])
-        if outcome.knot:
-            knot = True
-            break
-        if outcome.exploded:
-            break
-    model = policy_agent.model
-    reached = {
-        "policy": policy_agent.name,
-        "model": None if model is None else model.content_hash(),
-        "round": round_index,
-        "start_task_id": start.task_id,
-        "start_rope_hash": start_rope_hash(start.start_nodes_k3),
-    }
+    rollout = roll_out(policy_agent, world, start.start_nodes_k3)
+    chosen = list(rollout.chosen)
+    reached = reached_by(policy_agent, round_index, start.task_id, start.start_nodes_k3)
     prefix = policy_search_prefix(search_agent.name, policy_agent.name, round_index, start.task_id)
     executions: list[LabelledExecution] = []
     tries: list[StateTries] = []
-    for step, snapshot, nodes in visited:
+    for step, snapshot, nodes in rollout.visited:
         task_id = f"{start.task_id}@{policy_agent.name}-r{round_index}-t{step}"
         record = run_episode(
             search_agent,
@@ -278,8 +258,8 @@ def label_policy_states_with_search(
         start.task_id,
         tuple(executions),
         tuple(tries),
-        knot,
-        tuple(chosen),
+        rollout.knot,
+        rollout.chosen,
         time.perf_counter() - t0,
     )
 
