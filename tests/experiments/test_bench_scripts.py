@@ -312,3 +312,56 @@ def test_search_labels_read_knotted_rollouts_and_floor_only_the_candidates_that_
     assert [t.demo for t in tries[(eid, 0)].tried] == ["s001-t0", "s002-t0"]
     assert [t.demo for t in tries[(eid, 1)].tried] == ["s000-t1"]  # stage 1 -> 1 did not advance
     assert tries[(eid, 1)].stage_before == 1 and tries[(eid, 2)].tried == ()
+
+
+def test_search_labels_writes_the_starts_outside_the_held_out_fifth_and_reads_policy_states(
+    project_root, tmp_path
+) -> None:
+    """The starts the second step labels from leave out the held-out starts the fit scores on;
+    its labels file gives the executions the search knotted from, in id order."""
+    import argparse
+    from datetime import UTC, datetime
+
+    from knotlab.core.demos.tasks import TaskSet
+    from knotlab.core.selection.labels import LabelledExecution
+    from knotlab.core.tasks import get_task
+    from knotlab.labeling_db.interchange import read_labels, write_labels
+    from knotlab.labeling_db.records import StoredExecution
+
+    search_labels = load_bench_module(project_root, "search_labels")
+    args = argparse.Namespace(out_dir=tmp_path, task="overhand")
+    assert search_labels.cmd_starts(args) == 0
+    task = get_task("overhand")
+    for level in ("main", "hard"):
+        kept = TaskSet.load(tmp_path / f"starts_{level}.npz")
+        split = search_labels.level_split(
+            task, level, project_root / f"results/labels_oracle_{level}.jsonl"
+        )
+        held = {s.task_id for s in split.held_out_starts}
+        full = {s.task_id for s in task.files.load_task_set(level, "train")}
+        assert {s.task_id for s in kept} == full - held and len(held) == 60
+        assert kept.split == "train" and kept.metadata["level"] == level
+    written = (tmp_path / "starts_main.npz").stat().st_mtime_ns
+    assert search_labels.cmd_starts(args) == 0  # the same starts: left as they are
+    assert (tmp_path / "starts_main.npz").stat().st_mtime_ns == written
+
+    assert search_labels.dagger_executions(tmp_path, "main") == []  # none yet
+    oracle = [
+        item.execution for item in read_labels(project_root / "results/labels_oracle_main.jsonl")
+    ]
+    knotted = next(e for e in oracle if e.ended_in_knot)
+    later = LabelledExecution("search-la2x5-greedy-r1-z-t1", "oracle", "search-la2x5",
+                              knotted.steps, True, task_id="z@greedy-r1-t1")  # fmt: skip
+    earlier = LabelledExecution("search-la2x5-greedy-r1-a-t1", "oracle", "search-la2x5",
+                                knotted.steps, True, task_id="a@greedy-r1-t1")  # fmt: skip
+    empty = LabelledExecution("search-la2x5-greedy-r1-a-t2", "oracle", "search-la2x5", (),
+                              False, task_id="a@greedy-r1-t2")  # fmt: skip
+    labels, _ = search_labels.dagger_files(tmp_path, "main")
+    now = datetime.now(UTC)
+    with labels.open("w") as fh:
+        stored = [
+            StoredExecution(e, started_at=now, finished_at=now) for e in (later, empty, earlier)
+        ]
+        write_labels(stored, fh, "jsonl")
+    back = search_labels.dagger_executions(tmp_path, "main")
+    assert [e.execution_id for e in back] == [earlier.execution_id, later.execution_id]
