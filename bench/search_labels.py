@@ -22,7 +22,8 @@ A second step (DAgger with the search as the expert): `knotlab label --search la
 greedy --policy-model <out>/model_search-both+floor.npz --task-set <out>/starts_main.npz
 --tries-out <out>/tries_dagger_main.jsonl` labels the states greedy reaches with the search's
 own episodes from there; `knotlab labels export` writes them to <out>/labels_dagger_main.jsonl,
-and `fit` then adds the arm that trains on them too.
+and `fit` then adds the arm that trains on them too. A second round (`--round 2`, greedy with
+that arm's model) goes to <out>/labels_dagger_main_r2.jsonl and <out>/tries_dagger_main_r2.jsonl.
 
 Usage: .venv/bin/python bench/search_labels.py rollout --out-dir results/search_labels
        .venv/bin/python bench/search_labels.py fit --out-dir results/search_labels
@@ -211,15 +212,22 @@ def search_executions(out: Path, level: str) -> list[LabelledExecution]:
         os.unlink(fh.name)
 
 
-def dagger_files(out: Path, level: str) -> tuple[Path, Path]:
-    """The level's policy states labelled by the search (`knotlab labels export`) and their
-    floor tries (`knotlab label --tries-out`)."""
-    return out / f"labels_dagger_{level}.jsonl", out / f"tries_dagger_{level}.jsonl"
+def dagger_files(out: Path, level: str, round_index: int = 1) -> tuple[Path, Path]:
+    """A round's policy states of the level labelled by the search (`knotlab labels export`) and
+    their floor tries (`knotlab label --tries-out`)."""
+    tag = level if round_index == 1 else f"{level}_r{round_index}"
+    return out / f"labels_dagger_{tag}.jsonl", out / f"tries_dagger_{tag}.jsonl"
 
 
-def dagger_executions(out: Path, level: str) -> list[LabelledExecution]:
-    """The level's policy states the search labelled (those it knotted from), by id."""
-    labels, _ = dagger_files(out, level)
+def dagger_part(part: str) -> tuple[str, int]:
+    """A policy-state part's level and round: "dagger-main" is round 1, "dagger2-main" round 2."""
+    head, level = part.split("-", 1)
+    return level, int(head.removeprefix("dagger") or 1)
+
+
+def dagger_executions(out: Path, level: str, round_index: int = 1) -> list[LabelledExecution]:
+    """A round's policy states of the level that the search labelled (knotted from), by id."""
+    labels, _ = dagger_files(out, level, round_index)
     if not labels.exists():
         return []
     found = [item.execution for item in read_labels(labels) if item.execution.steps]
@@ -260,6 +268,15 @@ ARMS: dict[str, tuple[str, ...]] = {
         "dagger-hard",
         "floor",
     ),
+    # a second round: greedy with the model just above, its reached states labelled likewise
+    "search-both+dagger-both+dagger2-main+floor": (
+        "search-main",
+        "search-hard",
+        "dagger-main",
+        "dagger-hard",
+        "dagger2-main",
+        "floor",
+    ),
 }
 
 
@@ -297,13 +314,20 @@ def cmd_fit(args: argparse.Namespace) -> int:
     parts: dict[str, list[LabelledExecution]] = {
         "oracle-hard": list(splits["hard"].train),
         **{f"search-{lv}": search_executions(out, lv) for lv in LEVELS},
-        **{f"dagger-{lv}": dagger_executions(out, lv) for lv in LEVELS},
+        **{
+            part: dagger_executions(out, *dagger_part(part))
+            for arm in ARMS.values()
+            for part in arm
+            if part.startswith("dagger")
+        },
     }
     for lv in LEVELS:
         leaked = [e.task_id for e in parts[f"search-{lv}"] if e.task_id in held_tasks]
         assert not leaked, f"search executions from held-out starts: {leaked[:3]}"
-        starts = {e.metadata["reached_by"]["start_task_id"] for e in parts[f"dagger-{lv}"]}
-        assert not starts & held_tasks, f"policy states from held-out starts: {lv}"
+    for part, executions in parts.items():
+        if part.startswith("dagger"):
+            starts = {e.metadata["reached_by"]["start_task_id"] for e in executions}
+            assert not starts & held_tasks, f"policy states from held-out starts: {part}"
     oracle_tries = read_tries(files / "tries_hard.jsonl")
     for name, arm in ARMS.items():
         rec = report["models"].get(name, {})
@@ -311,7 +335,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS):
             print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
             continue
-        missing = [p for p in arm if p.startswith("dagger-") and not parts[p]]
+        missing = [p for p in arm if p.startswith("dagger") and not parts[p]]
         if missing:
             print(f"{name}: not fitted, no labels for {', '.join(missing)} yet", flush=True)
             continue
@@ -321,8 +345,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if "floor" in arm:
             for lv in LEVELS:
                 tries.update(search_floor_tries(out, lv, task))
-                if f"dagger-{lv}" in arm:
-                    tries.update(read_tries(dagger_files(out, lv)[1]))
+            for part in arm:
+                if part.startswith("dagger"):
+                    tries.update(read_tries(dagger_files(out, *dagger_part(part))[1]))
         fit(executions, library, held_ids, tries, model_path, args.workers, C=C, D=D)
         rec = {
             "parts": list(arm),

@@ -346,6 +346,9 @@ def test_search_labels_writes_the_starts_outside_the_held_out_fifth_and_reads_po
     assert (tmp_path / "starts_main.npz").stat().st_mtime_ns == written
 
     assert search_labels.dagger_executions(tmp_path, "main") == []  # none yet
+    assert search_labels.dagger_part("dagger-hard") == ("hard", 1)
+    assert search_labels.dagger_part("dagger2-main") == ("main", 2)
+    assert search_labels.dagger_files(tmp_path, "main", 2)[0].name == "labels_dagger_main_r2.jsonl"
     oracle = [
         item.execution for item in read_labels(project_root / "results/labels_oracle_main.jsonl")
     ]
