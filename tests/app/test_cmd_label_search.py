@@ -120,8 +120,8 @@ def test_the_search_labels_the_states_greedy_reaches_exactly_as_greedy_left_them
             assert ex.steps[0].rope_nodes_k3 is not None
             assert abs(ex.steps[0].rope_nodes_k3 - replay[step - 1]).max() < 1e-4
     assert summary["labelled_states"] == sum(len(e.steps) for e in executions)
-    if summary["labelled_states"]:
-        assert read_tries(tries)
+    # on this start the search knots from a state greedy reached, so the checks above ran
+    assert any(ex.steps for ex in executions) and read_tries(tries)
     # resumable: the start is done
     assert main(argv) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["starts"] == 0
