@@ -13,7 +13,8 @@ The components are timed by wrapping those functions in this process only (the c
 is the shipped code). Training starts only: this is a speed bench, never a result.
 
 Usage: .venv/bin/python bench/search_speed.py [--policies la1x10,la2x5,oracle] [--starts 4]
-       [--level main] [--model results/model_main.npz] [--json]
+       [--level main] [--model results/model_main.npz] [--interactive la2x5]
+       [--prefetch on|off|both] [--memo episode|cold|both] [--json]
 """
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ def run_policy(worker: BenchWorker, name: str, tasks, clock: ComponentClock) -> 
     decisions: list[float] = []
     trace: list[list] = []  # per episode: chosen demos and stages (the outcome fingerprint)
     successes = 0
-    expansions = 0
+    expansions = reused = 0
     t0 = time.perf_counter()
     for task in tasks:
         record = training_episode(worker, name, task)
@@ -142,6 +143,7 @@ def run_policy(worker: BenchWorker, name: str, tasks, clock: ComponentClock) -> 
         trace.append([[st.chosen_key for st in record.steps], [st.stage for st in record.steps]])
         decisions += record.decision_times()
         expansions += sum(int(s.info.get("expansions", 0)) for s in record.steps)
+        reused += sum(int(s.info.get("reused_expansions", 0)) for s in record.steps)
     wall = time.perf_counter() - t0
     n = max(len(decisions), 1)
     split = {c: clock.seconds.get(c, 0.0) / n for c in COMPONENTS}
@@ -163,6 +165,7 @@ def run_policy(worker: BenchWorker, name: str, tasks, clock: ComponentClock) -> 
         "median_decision_s": statistics.median(decisions) if decisions else None,
         "mean_decision_s": mean_decision,
         "expansions_per_decision": expansions / n,
+        "reused_per_decision": reused / n,
         "executions_per_decision": clock.calls.get("simulation", 0) / n,
         "scans_per_decision": clock.calls.get("scan", 0) / n,
         "split_s_per_decision": split,
@@ -177,21 +180,21 @@ def format_report(rows: list[dict]) -> str:
     """The two tables: decision time split, and simulator speed per phase."""
     cols = (*COMPONENTS, "overhead")
     head = (
-        "| policy | successes | decisions | median s | mean s | sims | scans (lib + lm) | "
-        + " | ".join(cols)
-        + " | fingerprint |"
+        "| policy | successes | decisions | median s | mean s | expansions (memo) | sims | "
+        "scans (lib + lm) | " + " | ".join(cols) + " | fingerprint |"
     )
     lines = [
         "Seconds per step: decision (median, mean) and the whole step split by component "
         "(components sum to the wall time per step; a search simulates inside its decision)",
         head,
     ]
-    lines.append("|" + "---|" * (8 + len(cols)))
+    lines.append("|" + "---|" * (9 + len(cols)))
     for r in rows:
         sp = r["split_s_per_decision"]
         lines.append(
             f"| {r['policy']} | {r['successes']}/{r['episodes']} | {r['decisions']} | "
             f"{r['median_decision_s']:.2f} | {r['mean_decision_s']:.2f} | "
+            f"{r['expansions_per_decision']:.1f} ({r['reused_per_decision']:.1f}) | "
             f"{r['executions_per_decision']:.1f} | {r['scans_per_decision']:.1f} | "
             + " | ".join(f"{sp[c]:.2f}" for c in cols)
             + f" | `{r['fingerprint']}` |"
@@ -218,25 +221,45 @@ def run_interactive(worker: BenchWorker, args: argparse.Namespace, tasks, clock)
     pool = SimPool(str(Path(args.library).resolve()), args.pool_workers)
     rows = []
     try:
-        variants = {"on": (True,), "off": (False,), "both": (False, True)}[args.prefetch]
-        for name, prefetch in [(n, p) for n in args.interactive.split(",") for p in variants]:
+        prefetches = {"on": (True,), "off": (False,), "both": (False, True)}[args.prefetch]
+        memos = {"episode": (False,), "cold": (True,), "both": (False, True)}[args.memo]
+        variants = [
+            (n, p, c) for n in args.interactive.split(",") for p in prefetches for c in memos
+        ]
+        for name, prefetch, cold in variants:
             runner = PoolRunner(pool)
             runner.speculates = prefetch  # off: each level waits for the previous one whole
             agent = worker.agent.with_policy(name, runner=runner)
             policy = agent.policy
-            policy.name = f"{name} (app, {args.pool_workers} workers"
-            policy.name += ")" if prefetch else ", no prefetch)"
+            tags = [f"app, {args.pool_workers} workers"]
+            tags += [] if prefetch else ["no prefetch"]
+            tags += ["cold"] if cold else []
+            policy.name = f"{name} ({', '.join(tags)})"
             worker._agents[policy.name] = agent
             # warm the workers' featurizers for this model before timing
             run_episode(
                 agent, worker.world, tasks[0].start_nodes_k3, task_id="warm-up", max_steps=1
             )
             policy.memo = type(policy.memo)()  # type: ignore[attr-defined]
+            if cold:
+                _forget_between_decisions(policy)
             rows.append(run_policy(worker, policy.name, tasks, clock))
             print(f"{policy.name}: {rows[-1]['median_decision_s']:.2f} s median decision")
     finally:
         pool.close()
     return rows
+
+
+def _forget_between_decisions(policy) -> None:
+    """Give every decision of ``policy`` an empty outcome memo, as the app's Inspect panel has:
+    it searches a state loaded from its rope, so nothing an earlier search simulated matches."""
+    choose = policy.choose
+
+    def cold_choose(ctx):
+        policy.memo = type(policy.memo)()
+        return choose(ctx)
+
+    policy.choose = cold_choose
 
 
 def _warm_up(worker: BenchWorker, task) -> None:
@@ -261,8 +284,16 @@ def main() -> None:
     parser.add_argument(
         "--prefetch",
         choices=("on", "off", "both"),
-        default="both",
+        default="on",
         help="app mode with the next level's certain expansions started early, without, or both",
+    )
+    parser.add_argument(
+        "--memo",
+        choices=("episode", "cold", "both"),
+        default="both",
+        help="app mode with the episode's memo (a decision reuses what the previous one "
+        "simulated, as a bench or Agent episode does), with none (each decision from scratch, "
+        "as the app's Inspect panel searches a loaded state), or both",
     )
     parser.add_argument("--json", action="store_true", help="also print one JSON object last")
     args = parser.parse_args()
