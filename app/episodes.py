@@ -31,7 +31,10 @@ def store_episode(
     )
     if execution is None or not execution.steps:
         raise InvalidInputError(f"episode {episode_id} has no labelled steps to play")
-    episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}")
+    # The app places every state it shows at rest from an exactly kept rope; a replay of its
+    # episodes does the same. An oracle's or imported episode ran on, and is replayed so.
+    placed = store.placed_ropes(episode_id) if info.source == "human" else None
+    episode = execution_episode(execution, f"{info.labeller}: episode {episode_id}", placed)
     if isinstance(library, DemoLibrary):
         if execution.library_hash in (None, library.content_hash()):
             return episode, library

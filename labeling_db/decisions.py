@@ -50,8 +50,10 @@ class DecisionsStore(StoreBase):
                         Episode.start_state_id,
                         Episode.meta,
                         Labeller.name,
+                        RopeState.task_id.label("start_task_id"),
                     )
                     .join(Labeller, Episode.labeller_id == Labeller.id)
+                    .outerjoin(RopeState, Episode.start_state_id == RopeState.id)
                     .where(Episode.status.in_(list(statuses)))
                     .order_by(Episode.id)
                 )
@@ -80,7 +82,9 @@ class DecisionsStore(StoreBase):
                 offset = int(reached.get("step", 0))
                 before = tuple(str(k) for k in reached.get("chosen_before", ()))
                 steps = {offset + i: demo for i, demo in chosen[ep_id].items()}
-                start = start_key(ep.task_id, ep.start_state_id, ep_id)
+                # The app's episodes name no task: their start state does (as claiming reads
+                # it), so an app episode and an oracle execution of one start pair up.
+                start = start_key(ep.task_id or ep.start_task_id, ep.start_state_id, ep_id)
                 for i in sorted(set(steps) | marked[ep_id]):
                     if i < offset:
                         continue

@@ -57,6 +57,10 @@ from knotlab.labeling_db.rows import (
 )
 from knotlab.labeling_db.store_base import StoreBase
 
+# Episode metadata: the demos whose tries were stored as dead ends, by rollout step
+# ({"2": {"s012-t1": dead-end state id}}), so a resume marks them again.
+DEAD_END_DEMOS = "dead_end_demos"
+
 _PG_CLAIM_LOCK = 0x6B6E6F75  # serialises claiming the next unlabelled start state
 
 
@@ -363,12 +367,27 @@ class LabellingStore(StoreBase):
         return self._run(work, write=True)
 
     def add_dead_end(
-        self, episode_id: int, dead_end: DeadEndState, *, provenance: StateProvenance | None = None
+        self,
+        episode_id: int,
+        dead_end: DeadEndState,
+        *,
+        provenance: StateProvenance | None = None,
+        demo_key: str | None = None,
     ) -> int:
-        """Record a dead-end state met during an episode; returns its rope state id."""
+        """Record a dead-end state met during an episode; returns its rope state id.
+
+        With ``demo_key`` (the demo whose try reached it) and the provenance's step, the mark is
+        kept per step, so a resume or an undo shows it again, and marking the same demo at the
+        same step twice stores it once (the first state's id is returned).
+        """
+        step = None if provenance is None else provenance.episode_step
+        keyed = demo_key is not None and step is not None
 
         def work(s: Session) -> int:
             ep = self._locked_episode(s, episode_id)
+            marks = {k: dict(v) for k, v in (ep.meta or {}).get(DEAD_END_DEMOS, {}).items()}
+            if keyed and demo_key in marks.get(str(step), {}):
+                return int(marks[str(step)][demo_key])
             n = s.scalar(
                 select(func.count()).select_from(DeadEnd).where(DeadEnd.episode_id == ep.id)
             )
@@ -377,10 +396,26 @@ class LabellingStore(StoreBase):
             s.add(row)
             s.flush()
             s.add(DeadEnd(episode_id=ep.id, state_id=row.id, ordinal=int(n or 0)))
+            if keyed:
+                marks.setdefault(str(step), {})[str(demo_key)] = row.id
+                ep.meta = {**(ep.meta or {}), DEAD_END_DEMOS: marks}
             s.flush()
             return row.id
 
         return self._run(work, write=True)
+
+    def dead_end_demos(self, episode_id: int, step: int) -> tuple[str, ...]:
+        """The demos whose tries were stored as dead ends at ``step`` of an episode (marked with
+        their demo), in the order they were marked."""
+
+        def work(s: Session) -> tuple[str, ...]:
+            ep = s.get(Episode, episode_id)
+            if ep is None:
+                raise RecordNotFoundError(f"{self.url}: no episode with id {episode_id}")
+            marks = (ep.meta or {}).get(DEAD_END_DEMOS, {}).get(str(step), {})
+            return tuple(sorted(marks, key=lambda k: marks[k]))
+
+        return self._run(work, write=False)
 
     def mark_reached(
         self, episode_id: int, nodes_k3: np.ndarray, reached_by: Mapping[str, Any]
@@ -464,6 +499,11 @@ class LabellingStore(StoreBase):
             elif undone is not None and undone.rope_nodes is not None:  # older episodes
                 nodes = _state_record(undone).rope_nodes_k3
                 ep.meta = {**(ep.meta or {}), "resume_nodes": _resume_nodes(nodes)}
+            marks = (ep.meta or {}).get(DEAD_END_DEMOS)
+            if marks:  # the states after the undone step are gone, and their marks with them
+                offset = int(((ep.meta or {}).get(REACHED_BY) or {}).get("step", 0))
+                kept = {k: v for k, v in marks.items() if int(k) <= offset + label.step_index}
+                ep.meta = {**(ep.meta or {}), DEAD_END_DEMOS: kept}
             s.delete(label)
             if ep.status == "completed":  # its last step is gone: it is being relabelled
                 ep.status, ep.ended_in_knot, ep.finished_at = "in_progress", False, None
@@ -537,6 +577,24 @@ class LabellingStore(StoreBase):
             if ep is None:
                 raise RecordNotFoundError(f"{self.url}: no episode with id {episode_id}")
             return _episode_info(s, ep)
+
+        return self._run(work, write=False)
+
+    def placed_ropes(self, episode_id: int) -> dict[int, np.ndarray]:
+        """The exact ropes (float64) the app placed an episode's states from, by step index.
+
+        The labelling app places every state after the first at rest from the rope its last
+        step ended in, and keeps that rope exactly (the episode's state sources); a replay that
+        places the states from them meets the ropes the labeller saw. Empty for an episode the
+        app did not make (an oracle's or an imported one).
+        """
+
+        def work(s: Session) -> dict[int, np.ndarray]:
+            ep = s.get(Episode, episode_id)
+            if ep is None:
+                raise RecordNotFoundError(f"{self.url}: no episode with id {episode_id}")
+            sources = (ep.meta or {}).get("state_sources", {})
+            return {int(k): np.asarray(v, dtype=float) for k, v in sources.items()}
 
         return self._run(work, write=False)
 

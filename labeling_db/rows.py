@@ -67,8 +67,16 @@ def _insert_ignore(session: Session, model: type, values: dict[str, Any], key: s
 
 
 def _labeller_id(session: Session, name: str, kind: str) -> int:
+    """The id of labeller ``name`` of ``kind`` (registered if new); a name another kind of
+    labeller holds is refused, so a person's labels are never filed as the oracle's."""
     _insert_ignore(session, Labeller, {"name": name, "kind": kind, "created_at": utcnow()}, "name")
-    return session.scalars(select(Labeller.id).where(Labeller.name == name)).one()
+    lid, held = session.execute(
+        select(Labeller.id, Labeller.kind).where(Labeller.name == name)
+    ).one()
+    if held != kind:
+        who = "a simulated expert" if held == "oracle" else "a person"
+        raise InvalidRecordError(f"the name {name!r} belongs to {who} here; choose another name")
+    return int(lid)
 
 
 def _library_id(session: Session, library_hash: str | None, task: str | None = None) -> int | None:

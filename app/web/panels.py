@@ -9,7 +9,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import viser
 
@@ -253,6 +253,7 @@ class LabelPanels:
         # While the name prompt is open, Enter submits it: the Enter hotkey is global, so
         # without this a keyboard-only labeller's Enter in the name field would be a Try.
         self._submit_name: Callable[[], bool] | None = None
+        self._name_hint: Any = None  # the name dialog's message line, while it is open
         gui = self.client.gui
         keys: list[tuple[str, str, Callable[[], None]]] = [
             ("Try the selected candidate", "enter", self._enter),
@@ -277,9 +278,10 @@ class LabelPanels:
         setattr(self.model_mode, "value", not self.model_mode.value)  # noqa: B010 (typed read-only)
 
     # ------------------------------------------------------------------ name
-    def ask_name(self, on_name: Callable[[str], None]) -> None:
+    def ask_name(self, on_name: Callable[[str], None], error: str | None = None) -> None:
         """A modal asking the labeller's name once per browser; Enter in the field, Enter on
-        the button and a click all start (the field sits in a form, which submits on Enter)."""
+        the button and a click all start (the field sits in a form, which submits on Enter).
+        ``error``: why the last name could not start (shown in the dialog)."""
         self._set(self.status, "content", "*waiting for your name (in the dialog)*")
         modal = self.client.gui.add_modal("Who is labelling?")
         with modal:
@@ -288,8 +290,10 @@ class LabelPanels:
             )
             with self.client.gui.add_form(None) as form:
                 name = self.client.gui.add_text("Your name", "")
+            hint = self.client.gui.add_markdown(f"**cannot start**: {error}" if error else "")
             start = self.client.gui.add_button("Start labelling", color="green")
         lock = threading.Lock()
+        self._name_hint = hint
 
         def submit() -> bool:
             """Start with the typed name, once; False when the field is still empty."""
@@ -306,7 +310,8 @@ class LabelPanels:
 
         @start.on_click
         def _(_e: object) -> None:
-            submit()
+            if not submit():
+                self._ask_for_a_name()
 
         @form.on_submit
         def _(_e: object) -> None:
@@ -325,6 +330,13 @@ class LabelPanels:
         deadline = time.monotonic() + 1.0
         while not submit() and self._submit_name is not None and time.monotonic() < deadline:
             time.sleep(0.05)
+        if self._submit_name is not None:  # still open: the field is empty
+            self._ask_for_a_name()
+
+    def _ask_for_a_name(self) -> None:
+        """An empty name was submitted: say so in the dialog."""
+        if self._name_hint is not None:
+            self._set(self._name_hint, "content", "**type your name first** (any name but empty)")
 
     # ------------------------------------------------------------------ state
     def show(self, view: SessionView) -> None:

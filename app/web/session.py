@@ -53,6 +53,8 @@ from knotlab.labeling_db.records import EpisodeInfo, StateProvenance
 from knotlab.labeling_db.store import Store
 
 FRAME_DT = 1.0 / 30.0  # s of simulated time between animation frames
+# Names a person cannot label under: the simulated expert's (its labels are told apart by it).
+RESERVED_NAMES: frozenset[str] = frozenset({"oracle"})
 # A shown state's scan: in full, or from a stored summary with its candidates registered.
 ShownScan: TypeAlias = ScanResult | SummaryScan
 # How a try is simulated: (state, cloud, demo index, frame recorder) -> outcome.
@@ -74,6 +76,10 @@ class LabelSession:
     ) -> None:
         if not labeller.strip():
             raise SessionError("the labeller's name must not be empty")
+        if labeller.strip().casefold() in RESERVED_NAMES:
+            raise SessionError(
+                f"{labeller.strip()!r} names the simulated expert; choose your own name"
+            )
         self.store = store
         self.res = resources
         self.labeller = labeller.strip()
@@ -206,6 +212,21 @@ class LabelSession:
             self.phase = Phase.MODEL  # a fresh start: the model drives first
         if info.n_labels == 0 and info.policy_failed is not None:
             self._grey_model_failure(info.policy_failed)
+        self._mark_stored_dead_ends()
+
+    def _mark_stored_dead_ends(self) -> None:
+        """The dead ends already stored in this state (before a reload or an undo), marked
+        again: shown as dead ends and not offered first."""
+        assert self.episode is not None
+        step = self.first_step + self.step_index
+        stored = set(self.store.dead_end_demos(self.episode.episode_id, step))
+        marked = [c.ranked.rank for c in self.candidates if c.ranked.demo_key in stored]
+        if not marked:
+            return
+        self.dead_ends.update(marked)
+        self.rejected.update(marked)
+        left = [c.ranked.rank for c in self.candidates if c.ranked.rank not in self.rejected]
+        self.selected = left[0] if left else None
 
     def _grey_model_failure(self, demo_key: str) -> None:
         """The state the model reached, placed again: its failed choice greyed out as when
@@ -570,6 +591,7 @@ class LabelSession:
                     provenance=StateProvenance(
                         self.task_id, self.first_step + self.step_index, None
                     ),
+                    demo_key=result.demo_key,  # shown again on a resume; stored once
                 )
             self.dead_ends.add(result.rank)
             self._restore_after(result.rank)

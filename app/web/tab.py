@@ -26,6 +26,7 @@ from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, pixel_ratio_of
 from knotlab.app.web.session import FRAME_DT, LabelSession
 from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError, SessionView
 from knotlab.app.web.sim_pool import SimPoolClosedError
+from knotlab.core.errors import KnotlabError
 from knotlab.core.world.frames import FrameRecorder
 from knotlab.labeling_db.errors import ConflictError
 
@@ -153,7 +154,6 @@ class LabelTab:
     def _begin(self, name: str) -> None:
         """Start (or resume) this labeller's session now."""
         try:
-            self.client.local_storage.set_item(NAME_KEY, name.strip())
             pool = self.app.sim_pool
             session = LabelSession(
                 self.app.store,
@@ -162,10 +162,16 @@ class LabelTab:
                 simulate=None if pool is None else pool.simulate,
             )
             view = session.start()
+        except (SessionError, KnotlabError) as exc:  # a name or store the user can fix: ask again
+            log.info("client %s: cannot start: %s", self.client.client_id, exc)
+            self.panels.ask_name(self.begin, error=str(exc))
+            return
         except Exception as exc:
             self._notify("cannot start labelling", str(exc), "red")
             log.exception("client %s: cannot start", self.client.client_id)
             return
+        # Remembered only once it started: a refused name is not offered again on a reload.
+        self.client.local_storage.set_item(NAME_KEY, name.strip())
         if self.closed:
             session.close()
             return

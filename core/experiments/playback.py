@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -58,7 +58,11 @@ class PlaybackEpisode:
     steps: tuple[PlaybackStep, ...]
     recorded_knot: bool
     noise: float = 0.0  # observation noise of the run (bench), with its episode seed
-    seed: int = 0
+    seed: int | None = 0  # None: observed unseeded, as the labelling app observes
+    # The labelling app places each state at rest from the rope its previous step ended in
+    # (so that an undo or a resume places it again bit for bit); a replay of its episodes
+    # places each step's state from ``nodes_before_k3`` likewise instead of simulating on.
+    placed_at_rest: bool = False
 
 
 @dataclass
@@ -176,20 +180,38 @@ def bench_episode(
     return episode, library
 
 
-def execution_episode(execution: LabelledExecution, title: str) -> PlaybackEpisode:
-    """A labelled execution (a store episode) as a playback episode, from its first step's rope."""
+def execution_episode(
+    execution: LabelledExecution,
+    title: str,
+    placed_k3: Mapping[int, np.ndarray] | None = None,
+) -> PlaybackEpisode:
+    """A labelled execution (a store episode) as a playback episode, from its first step's rope.
+
+    ``placed_k3``: for an episode made in the labelling app, the exact ropes its states were
+    placed from at rest, by step index (a step without one was placed from its stored rope);
+    the replay then places every state as the app did. Without it the replay simulates on from
+    the first rope, as the oracle's and the bench's episodes ran.
+    """
     if not execution.steps:
         raise PlaybackError(f"{title}: the execution has no labelled steps to play")
     start = execution.steps[0].rope_nodes_k3
     if start is None:
         raise PlaybackError(f"{title}: its start state has no rope nodes, only a cloud")
+    placed = {} if placed_k3 is None else dict(placed_k3)
     steps = []
     for s in execution.steps:
         score = None
         if s.candidate_scores_c is not None and s.chosen_demo in s.candidates:
             score = float(s.candidate_scores_c[s.candidates.index(s.chosen_demo)])
-        steps.append(PlaybackStep(s.chosen_demo, score, None, s.rope_nodes_k3))
-    return PlaybackEpisode(title, start, tuple(steps), execution.ended_in_knot)
+        before = placed.get(s.step_index, s.rope_nodes_k3)
+        steps.append(PlaybackStep(s.chosen_demo, score, None, before))
+    if placed_k3 is None:
+        return PlaybackEpisode(title, start, tuple(steps), execution.ended_in_knot)
+    first = steps[0].nodes_before_k3
+    assert first is not None
+    return PlaybackEpisode(
+        title, first, tuple(steps), execution.ended_in_knot, seed=None, placed_at_rest=True
+    )
 
 
 # ----------------------------------------------------------------------------- re-simulation
@@ -216,15 +238,18 @@ def resimulate(
             if step.demo_key not in library.keys:
                 raise PlaybackError(f"step {i}: demo {step.demo_key!r} is not in the library")
             before = world.rope_nodes()
-            if step.nodes_before_k3 is not None and step.nodes_before_k3.shape == before.shape:
-                gap = float(np.linalg.norm(before - step.nodes_before_k3, axis=1).max())
+            recorded = step.nodes_before_k3
+            if recorded is not None and recorded.shape == before.shape:
+                gap = float(np.linalg.norm(before - recorded, axis=1).max())
                 if gap > NODES_TOLERANCE_M:
                     warnings.append(
                         f"step {i}: the replayed rope is {1000 * gap:.1f} mm from the recorded one"
                     )
-            cloud = observe(
-                world, observation, noise=episode.noise, seed=step_seed(episode.seed, i)
-            )
+                if episode.placed_at_rest and i > 0:
+                    world.reset(recorded)  # as the app placed it (step 0: the reset above)
+                    before = world.rope_nodes()
+            seed = None if episode.seed is None else step_seed(episode.seed, i)
+            cloud = observe(world, observation, noise=episode.noise, seed=seed)
             rec = FrameRecorder(dt)
             outcome = apply_demo(world, transferer, cloud, library.index_of(step.demo_key), rec)
             frames = rec.frames()

@@ -462,6 +462,23 @@ def test_actions_are_disabled_behind_the_name_prompt(browser, app):
         context.close()
 
 
+def test_the_name_prompt_says_why_an_empty_or_reserved_name_does_not_start(browser, app):
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        page, server_tab = open_page(app, context)
+        page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
+        page.get_by_role("button", name="Start labelling").click()  # nothing typed
+        page.get_by_text("type your name first").wait_for(timeout=10_000)
+        give_name(page, "oracle")  # the simulated expert's name: refused, asked again
+        page.get_by_text("names the simulated expert").wait_for(timeout=10_000)
+        assert server_tab.session is None
+        give_name(page, "oona")
+        wait_until(lambda: server_tab.ready.is_set(), 30, "the first state to be drawn")
+        assert server_tab.session.labeller == "oona"
+    finally:
+        context.close()
+
+
 def test_enter_on_the_focused_start_button_starts_labelling(tabs):
     tab = tabs("lin", submit="button-enter")
     assert tab.session.labeller == "lin"

@@ -64,3 +64,48 @@ def test_claiming_offers_an_overlap_start_to_a_second_labeller_only(db_url: str)
         assert third is not None and third.start_state_id == ids[1]
         assert store.start_episode("dee", overlap=everything) is None
         assert store.start_episode("eve", overlap=OverlapPolicy(0.0)) is None
+
+
+def test_an_app_episode_on_a_start_pairs_with_an_oracle_execution_of_its_task(db_url) -> None:
+    """The app claims a start state (its episode names no task); the oracle's execution names
+    the task: both are the same start, so their states pair for agreement."""
+    from knotlab.core.selection.labels import LabelledExecution
+
+    oracle = LabelledExecution(
+        "oracle-task-a",
+        "oracle",
+        "oracle",
+        (LabelledStep(0, cloud(40), "d1", "progressed"), LabelledStep(1, cloud(41), "d2", "knot")),  # type: ignore[arg-type]
+        True,
+        task_id="task-a",
+    )
+    with open_store(db_url) as store:
+        store.add_executions([oracle])
+        store.add_start_states([cloud(1)], provenance=[StateProvenance("task-a", 0, 1)])
+        ann = store.start_episode("ann")  # as the app claims: no task id given
+        assert ann is not None
+        _label(store, ann.episode_id, 0, "d1")
+        _label(store, ann.episode_id, 1, "d3", "knot")
+        visits = store.state_visits()
+    assert {v.start for v in visits} == {"task-a"}
+    pa = pair_agreement(visits, "oracle", "ann")
+    assert (pa.n_compared, pa.n_agree) == (2, 1)
+
+
+def test_a_dead_end_marked_twice_is_stored_once_and_an_undo_drops_later_marks(db_url) -> None:
+    with open_store(db_url) as store:
+        store.add_start_states([cloud(1)], provenance=[StateProvenance("task-a", 0, 1)])
+        ep = store.start_episode("ann")
+        assert ep is not None
+        mark = {"provenance": StateProvenance(None, 0, None), "demo_key": "d2"}
+        one = store.add_dead_end(ep.episode_id, DeadEndState(cloud(7)), **mark)
+        assert store.add_dead_end(ep.episode_id, DeadEndState(cloud(7)), **mark) == one
+        assert store.progress("ann").dead_ends == 1
+        assert store.dead_end_demos(ep.episode_id, 0) == ("d2",)
+        _label(store, ep.episode_id, 0, "d1")
+        later = {"provenance": StateProvenance(None, 1, None), "demo_key": "d5"}
+        store.add_dead_end(ep.episode_id, DeadEndState(cloud(8)), **later)
+        assert store.dead_end_demos(ep.episode_id, 1) == ("d5",)
+        store.undo_last_label("ann")  # back to step 0: step 1's state is gone, so is its mark
+        assert store.dead_end_demos(ep.episode_id, 1) == ()
+        assert store.dead_end_demos(ep.episode_id, 0) == ("d2",)

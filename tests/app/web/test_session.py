@@ -353,3 +353,48 @@ def test_a_fresh_start_is_ranked_from_the_shipped_start_scans_as_a_full_scan_wou
     assert [c.ranked for c in quick.candidates] == [c.ranked for c in full.candidates]
     for a, b in zip(quick.candidates, full.candidates, strict=True):
         assert np.array_equal(a.positions_gt3, b.positions_gt3)  # the warped paths drawn
+
+
+def test_a_labelled_episode_replays_as_it_was_labelled(store, resources):
+    """Playback of a store episode places each state as the app did (at rest, from the exact
+    rope stored for it), so the replay meets every recorded rope and ends as the record says."""
+    from knotlab.app.episodes import store_episode
+    from knotlab.core.experiments.playback import resimulate
+
+    s = _session(store, resources, "pia")
+    episode_id = s.episode.episode_id
+    while s.episode.episode_id == episode_id:  # to its end: a knot or the step limit
+        accept_something(s)
+    episode, library = store_episode(store, episode_id, resources.library)
+    assert len(episode.steps) >= 2
+    replay = resimulate(episode, library, dt=0.1)
+    assert replay.warnings == []
+    assert replay.knot == episode.recorded_knot
+
+
+def test_a_stored_dead_end_is_marked_again_after_a_reload(store, resources):
+    s = _session(store, resources, "dee")
+    accept_something(s)  # a labelled step: a reload resumes this episode
+    first = s.view().selected
+    s.try_selected()
+    s.dead_end()
+    s.close()
+    again = _session(store, resources, "dee")  # a reload: the same episode, the same state
+    view = again.view()
+    assert first in view.dead_ends and first in view.rejected and view.selected != first
+    assert store.progress("dee").dead_ends == 1
+    # marking it once more (the try simulated again) stores nothing new
+    assert again.episode is not None
+    (demo,) = store.dead_end_demos(again.episode.episode_id, 1)
+    visits = [v for v in store.state_visits() if v.labeller == "dee"]
+    assert [v.dead_end for v in visits] == [False, True]
+    assert demo == next(c.ranked.demo_key for c in view.candidates if c.ranked.rank == first)
+
+
+def test_a_person_cannot_label_under_the_simulated_experts_name(store, resources):
+    with pytest.raises(SessionError, match="simulated expert"):
+        LabelSession(store, resources, " Oracle ")
+    store.add_labeller("la2x5-search", "oracle")  # any simulated expert's name in the store
+    with pytest.raises(Exception, match="belongs to a simulated expert"):
+        _session(store, resources, "la2x5-search")
+    assert store.labellers() == ["la2x5-search"]  # nothing was filed under it
