@@ -174,6 +174,28 @@ def parse_int(text: str, path: str | Path, line: int | None = None) -> int:
         raise LineError(path, line, _int_problem(stripped)) from None
 
 
+def whole_number(value: object, what: str) -> int:
+    """A form field's whole number (a number or its text), or one line naming ``what`` is
+    wrong: empty, not a number, or not whole (a GUI would otherwise round or truncate it)."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        raise InvalidInputError(f"type {what}")
+    if isinstance(value, bool):
+        raise InvalidInputError(f"{what} must be a whole number, got {quote(value)}")
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, str):
+        stripped = value.strip()
+        if re.fullmatch(r"[+-]?[0-9]+", stripped):
+            try:
+                return _bounded_int(stripped.lstrip("+"))
+            except _IntOutOfRangeError:
+                raise InvalidInputError(f"{what}: {_int_problem(stripped)}") from None
+        raise InvalidInputError(f"{what} must be a whole number, got {quote(value)}")
+    if isinstance(value, float | np.floating) and np.isfinite(value) and float(value).is_integer():
+        return int(value)
+    raise InvalidInputError(f"{what} must be a whole number, got {quote(value)}")
+
+
 def parse_json(text: str | bytes, path: str | Path, line: int | None = None) -> Any:
     """``json.loads(text)`` behind the boundary: depth and integer size checked, and any error
     raised as :class:`LineError` naming ``path`` and ``line`` (never quoting more than a bit)."""

@@ -524,3 +524,28 @@ def test_a_bad_outcome_line_is_refused_or_skipped_in_one_line(tmp_path: Path, ca
         OutcomeLog(path).load(strict=True)
     assert list(OutcomeLog(path).load()) == [("nn", "t-0")]  # the others skipped, with warnings
     assert sum("ignoring an unreadable line" in r.message for r in caplog.records) == 2
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"), [(3, 3), (3.0, 3), ("12", 12), (" -4 ", -4), (np.int64(7), 7)]
+)
+def test_a_form_fields_whole_number_is_read_as_typed(value, expected) -> None:
+    assert textinput.whole_number(value, "a task number") == expected
+
+
+@pytest.mark.parametrize(
+    ("value", "said"),
+    [
+        (None, "type a task number"),
+        ("  ", "type a task number"),
+        (1.5, "must be a whole number, got 1.5"),
+        ("abc", "must be a whole number, got 'abc'"),
+        (float("nan"), "must be a whole number"),
+        (True, "must be a whole number"),
+        ("9" * 30, "does not fit in 64 bits"),
+    ],
+)
+def test_a_form_fields_bad_number_is_one_line_naming_it(value, said) -> None:
+    with pytest.raises(KnotlabError, match=said) as info:
+        textinput.whole_number(value, "a task number")
+    assert "\n" not in str(info.value)

@@ -19,6 +19,7 @@ from knotlab.app.web.inspect import Inspector, InspectView, RegistrationView
 from knotlab.app.web.scene import CLOUD_COLOUR, ROPE_COLOUR, ROPE_RADIUS
 from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.selection.explain import lookahead_tree, search_tree_lines
+from knotlab.core.textinput import whole_number
 
 log = logging.getLogger(__name__)
 SOURCES = ("current labelling state", "training start", "test task")
@@ -132,8 +133,11 @@ class InspectPanel:
         self._lock = threading.Lock()
         gui = client.gui
         self.source = gui.add_dropdown("State", SOURCES)
-        self.index = gui.add_number("Number", 0, min=0, step=1)
+        # No min: a number out of range reaches the server, which says what the range is.
+        self.index = gui.add_number("Number", 0, step=1)
         self.inspect_button = gui.add_button("Inspect", icon=viser.Icon.SEARCH)
+        # Why the last Inspect did not load (the state inspected before stays as it was).
+        self.error = gui.add_markdown("")
         self.back_button = gui.add_button(
             "Back to the labelling view", hint="the 3D view shows the inspected state until then"
         )
@@ -190,13 +194,14 @@ class InspectPanel:
                 label = "the current labelling state"
             else:
                 split = "train" if source == SOURCES[1] else "test"
-                number = int(self.index.value)
+                number = whole_number(self.index.value, "a task number")
                 nodes = self._start_nodes(split, number)
                 label = f"{split} task {number}"
             view = self.inspector.load(nodes, label)
         except Exception as exc:
-            self.choices.content = f"**cannot inspect**: {exc}"
+            self.error.content = f"**cannot inspect**: {exc}"
             return
+        self.error.content = ""
         self._after_load(view)
 
     def _after_load(self, view: InspectView) -> None:
@@ -220,11 +225,17 @@ class InspectPanel:
         try:
             view = self.inspector.load(nodes_k3, label)
         except Exception as exc:
-            self.choices.content = f"**cannot inspect**: {exc}"
+            self.error.content = f"**cannot inspect**: {exc}"
+            self.client.add_notification("cannot inspect", str(exc), color="red")
             return
+        self.error.content = ""
         self._after_load(view)
+        # viser cannot switch a tab group's tab from the server: the labeller is told where.
         self.client.add_notification(
-            "opened in Inspect", label, auto_close_seconds=4.0, color="blue"
+            "opened in Inspect",
+            f"{label}: the Inspect tab shows it",
+            auto_close_seconds=6.0,
+            color="blue",
         )
 
     def open_pair(self, view: InspectView, demo_a: str, demo_b: str) -> None:

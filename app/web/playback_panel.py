@@ -42,6 +42,7 @@ from knotlab.core.experiments.playback import (
 )
 from knotlab.core.selection.explain import stage_name
 from knotlab.core.tasks import DEFAULT_TASK, get_task
+from knotlab.core.textinput import whole_number
 
 FRAME_DT = 1.0 / 20.0  # simulated s between replay frames (played at SPEEDS x)
 SPEEDS = ("1x", "2x", "4x", "8x")
@@ -226,7 +227,8 @@ class PlaybackPanel:
         try:
             source = self.source.value
             if source == STORE:
-                self.episode, self.library = self._store_execution(int(self.task.value))
+                episode_id = whole_number(self.task.value, "an episode id")
+                self.episode, self.library = self._store_execution(episode_id)
             else:
                 self.episode, self.library = bench_episode(
                     source,

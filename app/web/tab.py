@@ -476,7 +476,7 @@ class LabelTab:
             self._notify("cannot open", str(exc), "red")
             return
         self.inspect.open_pair(view, d.demo_a, d.demo_b)
-        self._notify("opened in Inspect", label, "blue")
+        self._notify("opened in Inspect", f"{label}: the Inspect tab shows it", "blue")
 
     def follow(self, on: bool) -> None:
         """Claim the next ropes in the suggested order (or the oldest first)."""

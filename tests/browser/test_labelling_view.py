@@ -178,6 +178,24 @@ def _inspect(tab, source: str, number: int = 0):
     )
 
 
+def test_inspect_says_why_a_number_does_not_load_and_keeps_the_state_it_showed(tabs):
+    tab = tabs("inb")
+    view = _inspect(tab, "test task", 1)
+    panel = tab.server_tab.inspect
+    shown = panel.choices.content
+    # (A fraction never arrives: the field rounds what is typed to its step, and shows it.)
+    for value, said in ((-1, "numbered 0-"), (10**6, "numbered 0-")):
+        panel.index.value = value
+        tab.page.get_by_role("button", name="Inspect", exact=True).click()
+        tab.page.get_by_text(said).wait_for(timeout=10_000)
+        assert tab.server_tab.inspector.view is view  # nothing else was loaded
+        assert panel.choices.content == shown  # its heading and table stay
+    panel.index.value = 2
+    tab.page.get_by_role("button", name="Inspect", exact=True).click()
+    wait_until(lambda: tab.server_tab.inspector.view is not view, 60, "test task 2")
+    assert panel.error.content == ""
+
+
 def test_inspect_draws_the_state_it_inspects_and_labelling_draws_its_own_again(tabs, app):
     tab = tabs("ins")
     page = tab.page
