@@ -109,6 +109,8 @@ class LabelMix:
     """The labels a retrain would fit on (completed and in-progress episodes), per labeller."""
 
     shares: tuple[LabellerShare, ...]
+    # Executions with dead ends and no label: a retrain fits their values too.
+    dead_end_only: int = 0
 
     @property
     def labels(self) -> int:
@@ -170,7 +172,13 @@ class Store(LabellingStore, ExecutionsStore, ModelStore, DecisionsStore):
             ).all()
             shares = [LabellerShare(name, src, int(n), int(e)) for name, src, n, e in rows]
             shares.sort(key=lambda sh: (sh.source != "oracle", -sh.labels, sh.labeller))
-            return LabelMix(tuple(shares))
+            labelled = select(Label.id).where(Label.episode_id == Episode.id).exists()
+            dead_end_only = s.scalar(
+                select(func.count(func.distinct(DeadEnd.episode_id)))
+                .join(Episode, DeadEnd.episode_id == Episode.id)
+                .where(Episode.status.in_(TRAINING_STATUSES), ~labelled)
+            )
+            return LabelMix(tuple(shares), int(dead_end_only or 0))
 
         return self._run(work, write=False)
 

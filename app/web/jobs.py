@@ -288,7 +288,8 @@ def run_retrain(
     train = [e for i, e in enumerate(executions) if i not in set(held_idx)]
     on_stage(
         f"featurising {sum(len(e.steps) for e in train)} labelled states of {len(train)} "
-        f"executions and solving the QP ({len(held_out)} executions held out)",
+        f"executions and solving the QP ({sum(len(e.steps) for e in held_out)} states of "
+        f"{len(held_out)} executions held out to compare the models)",
         0.15,
     )
     search = QModelSearch(

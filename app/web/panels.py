@@ -70,7 +70,7 @@ def judged_suffix(rank: int, view: SessionView) -> str:
     if rank in view.dead_ends:
         return " · dead end"
     if rank == view.model_failed:
-        return " · the model's choice: failed"
+        return " · model's: failed"
     return " · rejected" if rank in view.rejected else ""
 
 
@@ -88,7 +88,10 @@ def label_mix_text(mix: LabelMix) -> str:
     """The labels a retrain would fit on: how many, and the oracle / human mix per labeller."""
     if not mix.shares:
         return "**Labels a retrain fits on:** none yet"
-    lines = [f"**Labels a retrain fits on:** {mix.labels} states of {mix.executions} executions"]
+    head = f"**Labels a retrain fits on:** {mix.labels} states of {mix.executions} executions"
+    if mix.dead_end_only:
+        head += f", and {mix.dead_end_only} executions of dead ends only"
+    lines = [head]
     for source in ("oracle", "human"):
         shares = mix.of_source(source)
         who = ", ".join(f"{sh.labeller} {sh.labels}" for sh in shares) or "none yet"
@@ -361,9 +364,11 @@ class LabelPanels:
             if c is None:
                 continue
             rejected = r in view.rejected
-            cost = f"cost {c.ranked.nn_cost:.3f}"
-            # The verdict before the cost: a narrow panel cuts the end of a long label off.
-            label = candidate_label(c) + judged_suffix(r, view) + f" · {cost}"
+            # A judged candidate's verdict takes the cost's place: the panel's width fits one
+            # of the two, and a greyed-out candidate is not chosen by its cost any more.
+            label = candidate_label(c) + (
+                judged_suffix(r, view) or f" · cost {c.ranked.nn_cost:.3f}"
+            )
             self._set(button, "label", label)
             self._set(button, "color", "gray" if rejected else rank_colour(r))
             self._set(button, "icon", viser.Icon.ARROW_RIGHT if r == view.selected else None)

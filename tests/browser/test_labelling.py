@@ -160,8 +160,17 @@ def test_reject_greys_out_and_dead_end_is_stored(tabs, app):
     assert tab.session.view().rejected == frozenset({1, 2})
     # A dead end reads as one, in the list and on the 3D label (which are not the DOM's text).
     buttons = tab.server_tab.panels.cand_buttons
-    wait_until(lambda: "· dead end ·" in buttons[1].label, 10, "the list saying dead end")
-    assert "· rejected ·" in buttons[0].label and "dead end" not in buttons[0].label
+    wait_until(lambda: buttons[1].label.endswith("· dead end"), 10, "the list saying dead end")
+    assert buttons[0].label.endswith("· rejected") and "dead end" not in buttons[0].label
+    # ... whole: no row of the list is cut off by the panel's width.
+    cut = tab.page.evaluate(
+        """() => [...document.querySelectorAll('button')]
+            .filter(b => /^#[0-9] /.test(b.innerText.trim()))
+            .map(b => b.querySelector('.mantine-Button-label'))
+            .filter(l => l && l.scrollWidth > l.clientWidth + 1)
+            .map(l => l.innerText.trim())"""
+    )
+    assert cut == [], cut
 
     def label_3d(rank: int) -> str:
         return tab.page.evaluate(

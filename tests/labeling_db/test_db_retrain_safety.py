@@ -64,8 +64,11 @@ def test_the_label_mix_counts_what_a_retrain_fits_on_per_labeller(tmp_path: Path
                 status="abandoned",
             )
         )
+        store.add_execution(  # dead ends only: no label, yet a retrain fits its values
+            make_execution("h-4", labeller="cy", source="human", n_steps=0, knot=False, n_dead=2)
+        )
         mix = store.label_mix()
-    assert (mix.labels, mix.executions) == (8, 3)
+    assert (mix.labels, mix.executions, mix.dead_end_only) == (8, 3, 1)
     assert [(sh.labeller, sh.labels) for sh in mix.of_source("human")] == [("ann", 3), ("bo", 2)]
     assert [(sh.labeller, sh.labels) for sh in mix.of_source("oracle")] == [("oracle", 3)]
 
