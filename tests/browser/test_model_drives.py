@@ -90,9 +90,7 @@ def test_the_model_drives_until_its_choice_fails_then_the_labeller_takes_over(ta
     episode, _ = app.store.open_episode("vic")
     assert episode.first_step == view.first_step
     assert len(episode.policy_chosen) == view.first_step
-    wait_until(
-        lambda: "model's: failed" in tab.page.inner_text("body"), 10, "the grey mark"
-    )
+    wait_until(lambda: "model's: failed" in tab.page.inner_text("body"), 10, "the grey mark")
     # The expert labels it with the mouse: the selected candidate is tried, then judged.
     for _ in range(len(view.candidates)):
         tab.button("Try (Enter)").click()
