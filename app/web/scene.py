@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal, TypeVar
 
 import numpy as np
@@ -148,26 +149,75 @@ def free_box(
     return (m, m, right - m, height - m)
 
 
-def pixel_ratio_of(client: viser.ClientHandle, timeout: float = 3.0) -> float:
-    """The browser's device pixel ratio (1.0 if it does not say within ``timeout`` s).
+@dataclass(frozen=True)
+class BrowserScale:
+    """What a page says of its window: device pixels per CSS pixel, and its CSS size."""
 
-    viser reports the canvas size in device pixels but has no call for the ratio, so the page
+    device_ratio: float = 1.0
+    css_width: float = 0.0  # 0: not known
+    css_height: float = 0.0
+
+    def ratio_for(self, width: int, height: int) -> float:
+        """Image pixels per CSS pixel of a canvas the browser reports as ``width`` x ``height``.
+
+        viser renders at a lower resolution while frames are slow (down to 0.75 of the
+        device's: software WebGL, a busy machine) and reports the canvas it renders, so the
+        reported size, not the device's ratio, says how many of its pixels the CSS-sized panel
+        and text take. A window resized since it was measured falls back to the device's.
+        """
+        if self.css_width > 0 and self.css_height > 0:
+            rx, ry = width / self.css_width, height / self.css_height
+            if abs(rx - ry) <= 0.02 * max(rx, ry):
+                return rx
+        return self.device_ratio
+
+
+def camera_pose(
+    points_p3: np.ndarray,
+    text_px: np.ndarray | None,
+    size: tuple[int, int],
+    ratio: float,
+    up: np.ndarray,
+    fov: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(position, look_at) of the front camera that shows ``points_p3`` as close as they fit,
+    left of the panel, on a canvas of ``size`` rendered pixels at ``ratio`` of them per CSS
+    pixel (each point's text, ``text_px`` CSS pixels wide, clear of the panel too)."""
+    width, height = size
+    box = np.tile(
+        np.asarray(free_box(width, height, ratio), dtype=np.float64), (len(points_p3), 1)
+    )
+    if text_px is not None:
+        box[:, 2] -= text_px * ratio
+        box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH * ratio, 0.0)
+    return frame_points(points_p3, np.asarray(VIEW_FORWARD), up, fov, (width, height), box)
+
+
+def browser_scale_of(client: viser.ClientHandle, timeout: float = 3.0) -> BrowserScale:
+    """The browser's device pixel ratio and window size in CSS pixels (1.0 and unknown if it
+    does not say within ``timeout`` s).
+
+    viser reports the canvas size in rendered pixels but has no call for the ratio, so the page
     is asked to put it in its local storage (viser's message for running a script: the one it
     loads plotly with), which is then read back as any stored item; messages arrive in order."""
     from viser import _messages  # private: viser has no public call for this message
 
     # viser keeps a server's items under the "viser-user:" prefix in the page's local storage.
     script = (
-        "localStorage.setItem('viser-user:knotlab.pixel_ratio', "
-        "String(window.devicePixelRatio || 1))"
+        "localStorage.setItem('viser-user:knotlab.pixel_ratio', JSON.stringify("
+        "[window.devicePixelRatio || 1, window.innerWidth, window.innerHeight]))"
     )
     try:
         client._websock_connection.queue_message(_messages.RunJavascriptMessage(source=script))
         value = client.local_storage.get_item("knotlab.pixel_ratio", timeout=timeout)
-        ratio = float(value) if value else 1.0
-    except (RuntimeError, TimeoutError, ValueError, AttributeError):
-        return 1.0
-    return ratio if 0.5 <= ratio <= 8.0 else 1.0
+        ratio, css_w, css_h = (float(x) for x in json.loads(value or "null"))
+    except (RuntimeError, TimeoutError, ValueError, TypeError, AttributeError):
+        return BrowserScale()
+    if not 0.5 <= ratio <= 8.0:
+        return BrowserScale()
+    if not (css_w > 0 and css_h > 0):
+        css_w = css_h = 0.0
+    return BrowserScale(ratio, css_w, css_h)
 
 
 def _xyz(p: np.ndarray) -> tuple[float, float, float]:
@@ -264,7 +314,7 @@ class SceneDrawer:
         self.first_frame_at: float | None = None  # perf_counter of the last try's first frame
         add_table(self.scene, lite=lite)
         self.label_root = self.scene.add_frame("/label", show_axes=False)
-        self.pixel_ratio = 1.0  # the browser's device pixels per CSS pixel (see free_box)
+        self.browser = BrowserScale()  # the page's pixel ratio and size (see free_box)
         self.showing: SceneView = "label"
         self.scene.on_click()(self._scene_click)
 
@@ -350,21 +400,8 @@ class SceneDrawer:
         up = np.asarray(cam.up_direction, dtype=np.float64)
         if not np.linalg.norm(up):
             up = np.array([0.0, 0.0, 1.0])
-        ratio = self.pixel_ratio
-        box = np.tile(
-            np.asarray(free_box(width, height, ratio), dtype=np.float64), (len(points_p3), 1)
-        )
-        if text_px is not None:
-            box[:, 2] -= text_px * ratio
-            box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH * ratio, 0.0)
-        position, look_at = frame_points(
-            points_p3,
-            np.asarray(VIEW_FORWARD),
-            up,
-            cam.fov,
-            (width, height),
-            box,
-        )
+        ratio = self.browser.ratio_for(width, height)
+        position, look_at = camera_pose(points_p3, text_px, (width, height), ratio, up, cam.fov)
         # Position first: viser moves the look-at point along with the position, so the
         # look-at point set second is the one that stays (the other order depends on where
         # the camera was, and a new tab's camera starts elsewhere).

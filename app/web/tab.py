@@ -22,7 +22,7 @@ from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
-from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, pixel_ratio_of
+from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, browser_scale_of
 from knotlab.app.web.session import FRAME_DT, LabelSession
 from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError, SessionView
 from knotlab.app.web.sim_pool import SimPoolClosedError
@@ -107,7 +107,7 @@ class LabelTab:
     # ------------------------------------------------------------------ start
     def open(self) -> None:
         """Ask for the labeller's name (remembered by the browser) and start labelling."""
-        self.drawer.pixel_ratio = pixel_ratio_of(self.client)
+        self.drawer.browser = browser_scale_of(self.client)
         name = None
         try:
             name = self.client.local_storage.get_item(NAME_KEY, timeout=3.0)

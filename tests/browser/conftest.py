@@ -291,17 +291,18 @@ def open_tab(
     context=None,
     timeout: float = 30.0,
     submit: str = "click",
+    query: str = "",
 ) -> Tab:
     """Open the app in a new page, give the labeller's name if asked, wait for a drawn state.
 
     ``submit``: how the name is sent: "click" the button, or "enter" in the field (keyboard
-    only)."""
+    only). ``query``: added to the app's URL (e.g. viser's "?fixedDpr=0.75")."""
     ctx = context or browser.new_context(viewport={"width": 1280, "height": 760})
     before = {t.client.client_id for t in app.tabs()}
     page = ctx.new_page()
     errors: list = []
     page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(app.url)
+    page.goto(app.url + query)
     page.wait_for_function(
         "() => !document.body.innerText.includes('Connecting...')", timeout=timeout * 1000
     )

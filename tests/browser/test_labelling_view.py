@@ -108,9 +108,28 @@ def test_a_high_density_screen_frames_clear_of_the_panel_too(browser, tabs):
     # sized in CSS pixels: framing must keep twice the pixels clear.
     context = browser.new_context(viewport={"width": 1280, "height": 760}, device_scale_factor=2)
     tab = tabs("hdpi", context=context)
-    assert tab.server_tab.drawer.pixel_ratio == 2.0
+    assert tab.server_tab.drawer.browser.device_ratio == 2.0
     assert tab.server_tab.client.camera.image_width == 2560
     assert_framed(tab, "a high-density screen", "framed_dpr2")
+
+
+def test_a_lowered_render_resolution_frames_as_the_full_one(tabs):
+    # viser renders at down to 0.75 of the device's resolution while frames are slow (software
+    # WebGL) and reports that canvas: the panel and the text are still CSS-sized, so the
+    # camera must be the one the full resolution gets, not one that keeps 4/3 of them clear.
+    from knotlab.app.web.scene import camera_pose, framed_points
+
+    tab = tabs("dpr", query="?fixedDpr=0.75")
+    tab.server_tab.drawer.frame(tab.session.view())  # at the canvas it reports now
+    cam = tab.settled_camera()
+    assert (cam.image_width, cam.image_height) == (960, 570)
+    points, text_px = framed_points(tab.session.view())
+    position, look_at = camera_pose(
+        points, text_px, (1280, 760), 1.0, np.asarray(cam.up_direction), cam.fov
+    )
+    assert np.linalg.norm(np.asarray(cam.position) - position) < 1e-3
+    assert np.linalg.norm(np.asarray(cam.look_at) - look_at) < 1e-3
+    assert_framed(tab, "a lowered resolution", "framed_dpr075")
 
 
 def test_only_the_selected_candidate_has_a_full_caption_the_rest_rank_badges(tabs):
