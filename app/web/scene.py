@@ -184,9 +184,7 @@ def camera_pose(
     left of the panel, on a canvas of ``size`` rendered pixels at ``ratio`` of them per CSS
     pixel (each point's text, ``text_px`` CSS pixels wide, clear of the panel too)."""
     width, height = size
-    box = np.tile(
-        np.asarray(free_box(width, height, ratio), dtype=np.float64), (len(points_p3), 1)
-    )
+    box = np.tile(np.asarray(free_box(width, height, ratio), dtype=np.float64), (len(points_p3), 1))
     if text_px is not None:
         box[:, 2] -= text_px * ratio
         box[:, 1] += np.where(text_px > 0, TEXT_PX_HIGH * ratio, 0.0)
