@@ -32,6 +32,9 @@ OFFLINE_TEXT = (
 )
 OFFLINE_BANNER = f"""<style>
 .knotlab-offline {{ display: none; }}
+/* Notes at the canvas's bottom-left, not its top-left: a state's candidate paths and their
+   captions rise above the rope, into the top of the view (viser places them top-left). */
+.mantine-Notifications-root {{ top: auto !important; bottom: 3.5em !important; }}
 div[style*="pointer-events: none"] .knotlab-offline {{
   display: block; position: fixed; top: 0; left: 0; right: 0; z-index: 1000;
   padding: 0.8em 1em; background: #a61e1e; color: white; font-weight: bold;

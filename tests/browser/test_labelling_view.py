@@ -113,6 +113,16 @@ def test_a_high_density_screen_frames_clear_of_the_panel_too(browser, tabs):
     assert_framed(tab, "a high-density screen", "framed_dpr2")
 
 
+def test_notes_sit_at_the_bottom_left_clear_of_the_paths_above_the_rope(tabs):
+    tab = tabs("nts")
+    tab.press("Enter")  # a try: the status notes come and go; one stays until closed
+    tab.server_tab.client.add_notification("a note", "where notes go", color="blue")
+    box = wait_until(
+        lambda: tab.page.get_by_text("where notes go").bounding_box(), 10, "the note shown"
+    )
+    assert box["y"] > 760 / 2 and box["x"] < 1280 / 3, box
+
+
 def test_a_lowered_render_resolution_frames_as_the_full_one(tabs):
     # viser renders at down to 0.75 of the device's resolution while frames are slow (software
     # WebGL) and reports that canvas: the panel and the text are still CSS-sized, so the
@@ -201,7 +211,9 @@ def test_inspect_says_why_a_number_does_not_load_and_keeps_the_state_it_showed(t
     tab = tabs("inb")
     view = _inspect(tab, "test task", 1)
     panel = tab.server_tab.inspect
-    shown = panel.choices.content
+    shown = wait_until(
+        lambda: c if "test task 1" in (c := panel.choices.content) else None, 20, "its heading"
+    )
     # (A fraction never arrives: the field rounds what is typed to its step, and shows it.)
     for value, said in ((-1, "numbered 0-"), (10**6, "numbered 0-")):
         panel.index.value = value
