@@ -81,27 +81,57 @@ def _exp_neg_row(  # pragma: no cover - compiled
     log2e, half, ln2_hi, ln2_lo, cap = cst[0], cst[1], cst[2], cst[3], cst[4]
     c0, c1, c2, c3, c4, c5 = cst[5], cst[6], cst[7], cst[8], cst[9], cst[10]
     c6, c7, c8, c9, c10 = cst[11], cst[12], cst[13], cst[14], cst[15]
-    for j in range(m):
+    # Two independent chains a pass, element j and element j + h: the polynomial is a chain of
+    # 20 dependent operations, and a CPU whose scheduler holds one chain at a time (AVX2 EPYC,
+    # 128-bit units) waited on its latency. Each element gets the same operations in the same
+    # order as one chain a pass (bit-identical): 2.70 -> 2.10 ns an element there.
+    h = m // 2
+    for j in range(h):
         v = min(s[j], cap)
-        kf = np.floor(v * log2e + half)
-        r = kf * ln2_lo - (v - kf * ln2_hi)  # -v = -k ln2 + r, |r| <= ln2 / 2
-        poly = c10
-        poly = poly * r + c9
-        poly = poly * r + c8
-        poly = poly * r + c7
-        poly = poly * r + c6
-        poly = poly * r + c5
-        poly = poly * r + c4
-        poly = poly * r + c3
-        poly = poly * r + c2
-        poly = poly * r + c1
-        poly = poly * r + c0
-        s[j] = poly
+        w = min(s[j + h], cap)
+        kv = np.floor(v * log2e + half)
+        kw = np.floor(w * log2e + half)
+        rv = kv * ln2_lo - (v - kv * ln2_hi)  # -v = -k ln2 + r, |r| <= ln2 / 2
+        rw = kw * ln2_lo - (w - kw * ln2_hi)
+        pv = c10
+        pw = c10
+        pv = pv * rv + c9
+        pw = pw * rw + c9
+        pv = pv * rv + c8
+        pw = pw * rw + c8
+        pv = pv * rv + c7
+        pw = pw * rw + c7
+        pv = pv * rv + c6
+        pw = pw * rw + c6
+        pv = pv * rv + c5
+        pw = pw * rw + c5
+        pv = pv * rv + c4
+        pw = pw * rw + c4
+        pv = pv * rv + c3
+        pw = pw * rw + c3
+        pv = pv * rv + c2
+        pw = pw * rw + c2
+        pv = pv * rv + c1
+        pw = pw * rw + c1
+        pv = pv * rv + c0
+        pw = pw * rw + c0
+        s[j] = pv
+        s[j + h] = pw
         # The IEEE bit pattern of 2^-k, (bias - k) << shift, formed as a float product (exact:
         # a small integer times a power of two) and converted to the bits' integer type on
         # store. `int(kf)` would go through int64, which AVX2 cannot convert from float32 in
         # SIMD registers, and the whole loop ran scalar (2.4 ns a point instead of ~0.3).
-        bits[j] = (e_bias - kf) * e_shift
+        bits[j] = (e_bias - kv) * e_shift
+        bits[j + h] = (e_bias - kw) * e_shift
+    for j in range(2 * h, m):  # an odd m's last element (the kernel's padded rows are even)
+        v = min(s[j], cap)
+        kv = np.floor(v * log2e + half)
+        rv = kv * ln2_lo - (v - kv * ln2_hi)
+        pv = c10
+        for c in (c9, c8, c7, c6, c5, c4, c3, c2, c1, c0):
+            pv = pv * rv + c
+        s[j] = pv
+        bits[j] = (e_bias - kv) * e_shift
     for j in range(m):
         p[i, j] = s[j] * bits_f[j]
 

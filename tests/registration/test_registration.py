@@ -333,6 +333,28 @@ def test_kernel_exp_matches_numpy(dtype: str) -> None:
     assert rel.max() < (2.5e-7 if dt == np.float32 else 1e-12), rel.max()
 
 
+@pytest.mark.parametrize("length", [1, 160, 161])
+def test_kernel_exp_two_chains_give_the_bits_of_one_chain(length: int) -> None:
+    """Elements j and j + m/2 share a pass; each gets one chain's operations in its order."""
+    from knotlab.core.registration.kernel import _exp_neg_row, exp_bits_constants, kernel_constants
+
+    dt = np.dtype(np.float32)
+    s = np.random.default_rng(length).uniform(0, 90, length).astype(dt)
+    cst = kernel_constants(dt, SCAN)
+    p = np.empty((1, length), dt)
+    bits = np.empty(length, np.int32)
+    _exp_neg_row(s.copy(), p, 0, bits, bits.view(dt), *exp_bits_constants(dt), cst, length)
+    # one chain, operation by operation, in NumPy's float32 (each operation rounded once)
+    v = np.minimum(s, cst[4])
+    k = np.floor(v * cst[0] + cst[1])
+    r = k * cst[3] - (v - k * cst[2])
+    poly = np.full(length, cst[15], dt)
+    for q in range(14, 4, -1):
+        poly = poly * r + cst[q]
+    two_to_minus_k = ((np.float32(127.0) - k) * np.float32(2.0**23)).astype(np.int32).view(dt)
+    assert np.array_equal(p[0].view(np.int32), (poly * two_to_minus_k).view(np.int32))
+
+
 @pytest.mark.parametrize("rows", [1, 4, 7, 150])
 def test_kernel_weighted_rows_add_in_row_order_bit_for_bit(rows: int) -> None:
     """The 4-rows-a-pass axpy adds row by row in order: equal bits to the plain loop."""
