@@ -39,10 +39,15 @@ def _scan(featurizer):
 
 
 def test_a_knotted_episode_is_a_labelled_execution_with_its_choices_and_model():
-    # any policy's episode converts; the simulation oracle knots this mini start
+    # any policy's episode converts; the simulation oracle knots one of these mini starts (which
+    # one depends on the CPU kind: AVX2 and AVX-512 machines simulate and scan with other last
+    # bits, docs/determinism.md)
     agent = Agent(mini_library(2), None, "oracle")
-    with RopeWorld() as world:
-        record = agent.run_episode(world, mini_tasks(2)[0])
+    for task in mini_tasks(3):
+        with RopeWorld() as world:
+            record = agent.run_episode(world, task)
+        if record.success:
+            break
     assert record.success
     ex = execution_from_episode(
         record,
