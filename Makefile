@@ -40,7 +40,7 @@ format: $(VENV)/.installed-test
 	$(BIN)/ruff format .
 
 test: $(VENV)/.installed-test system-deps lint
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q --durations=15
 
 # No root needed: tests that need a missing PostgreSQL skip; Chromium's are `browser`, deselected.
 check: lint
