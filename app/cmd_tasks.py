@@ -59,7 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Register the level's training starts in a throw-away labelling store, "
         "exactly as `knotlab app` does, scan each stored start cloud against the library and "
         "write the summaries (registration costs, grasp distances) the app's Suggest scores "
-        "them from. Shipped as scans_<level>_train.npz beside the task sets.",
+        "them from. Shipped per CPU kind as scans_<level>_train_<kind>.npz (avx512, avx2) beside "
+        "the task sets: the app uses a summary only on the kind of CPU that made it.",
     )
     add_task_argument(scans)
     add_flag(scans, "--level")
@@ -67,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_flag(
         scans, "--model", detail="whose landmark weights to add (the shipped one unless --library)"
     )
-    add_flag(scans, "--out", detail="default: the task's shipped scans_<level>_train.npz")
+    add_flag(scans, "--tasks", detail="a quick check of the first N starts; default: every start")
+    add_flag(scans, "--out", detail="default: the task's scans_<level>_train_<this CPU's kind>.npz")
     add_flag(scans, "--force", detail="here: a scans file already at --out (a shipped one too)")
     add_no_progress_argument(scans)
     scans.set_defaults(func=run_scans)
@@ -111,7 +113,7 @@ def run_scans(args: argparse.Namespace) -> int:
         open_store(f"sqlite:///{tmp}/starts.db", create=True) as store,
     ):
         resources.register_starts(store, level)
-        starts = store.start_states_to_label()
+        starts = store.start_states_to_label()[: args.tasks]
         # Two clouds per start: the stored one (Suggest scores it) and the one a tab observes
         # from the stored rope when it shows the start (it ranks that one; the store keeps
         # clouds in float32, so the two differ in their last bits).

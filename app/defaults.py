@@ -32,9 +32,10 @@ def task_set_path(level: str, split: str, task: str = DEFAULT_TASK) -> Path:
     return get_task(task).files.task_set_path(level, split)
 
 
-def scans_path(level: str, split: str, task: str = DEFAULT_TASK) -> Path:
-    """The shipped scan summaries of a task set's start clouds (used if present)."""
-    return get_task(task).files.scans_path(level, split)
+def scans_path(level: str, split: str, task: str = DEFAULT_TASK, kind: str | None = None) -> Path:
+    """The shipped scan summaries of a task set's start clouds made on CPUs of ``kind``
+    (default: this machine's; used if present)."""
+    return get_task(task).files.scans_path(level, split, kind)
 
 
 def shipped_dirs() -> tuple[Path, ...]:

@@ -56,7 +56,9 @@ class TaskFiles:
     library: str = "demos_default.npz"
     model: str = "model_default.npz"
     task_set_pattern: str = "tasks_{level}_{split}.npz"
-    scans_pattern: str = "scans_{level}_{split}.npz"
+    # Start scans are per CPU kind: the app uses a summary only where it has the bits a scan
+    # on this machine would give (core.machine.vector_width names the kind).
+    scans_pattern: str = "scans_{level}_{split}_{kind}.npz"
 
     def path(self, name: str) -> Path:
         """A shipped file's path on disk (installed as package data, read through
@@ -78,9 +80,13 @@ class TaskFiles:
         """The shipped task set of one perturbation level and split."""
         return self.path(self.task_set_pattern.format(level=level, split=split))
 
-    def scans_path(self, level: str, split: str) -> Path:
-        """Precomputed library-scan summaries of a task set's start clouds (may be absent)."""
-        return self.path(self.scans_pattern.format(level=level, split=split))
+    def scans_path(self, level: str, split: str, kind: str | None = None) -> Path:
+        """Precomputed library-scan summaries of a task set's start clouds, made on CPUs of
+        ``kind`` (default: this machine's; may be absent)."""
+        from knotlab.core.machine import vector_width
+
+        kind = (kind or vector_width()).replace(" ", "_")
+        return self.path(self.scans_pattern.format(level=level, split=split, kind=kind))
 
     def load_task_set(self, level: str, split: str) -> TaskSet:
         """The shipped start ropes of one level and split (e.g. main, test)."""

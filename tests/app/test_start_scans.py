@@ -41,23 +41,30 @@ def test_the_shipped_scans_cover_every_start_the_app_stores(level, tmp_path) -> 
 def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
     """Run as a user would (a fresh process: one BLAS thread, as every knotlab command)."""
     out = tmp_path / "scans_main_train.npz"
-    argv = ["tasks", "scans", "--level", "main", "--out", str(out), "--no-progress"]
-    subprocess.run([sys.executable, "-m", "knotlab.app.cli", *argv], check=True, timeout=300)
-    shipped = defaults.scans_path("main", "train")
+    argv = ["tasks", "scans", "--level", "main", "--tasks", "40", "--out", str(out)]
+    subprocess.run([sys.executable, "-m", "knotlab.app.cli", *argv, "--no-progress"], check=True)
+    shipped = defaults.scans_path("main", "train")  # made on this CPU kind
+    if not shipped.exists():  # a kind no file is shipped for: compare with the AVX-512 one
+        shipped = defaults.scans_path("main", "train", kind="avx512")
     made, header = read_npz(out, "scans")
-    if header["made_on"] == read_npz(shipped, "scans")[1]["made_on"]:
-        assert out.read_bytes() == shipped.read_bytes()  # the same kernel: the same bytes
-        return
-    stored, _ = read_npz(shipped, "scans")
-    # Another CPU kind: a cloud a tab observes from a stored rope may differ in its last bits
-    # (one of 600 on an AVX2 EPYC against the AVX-512 box's file; the app then scans that start
-    # in full), and the scans' numbers differ in theirs.
+    stored, stored_header = read_npz(shipped, "scans")
+    # The first 40 starts, two clouds each (the stored one and the one a tab observes).
+    assert len(made["digests"]) == 80
     row_made = {str(d): i for i, d in enumerate(made["digests"])}
     row_stored = {str(d): i for i, d in enumerate(stored["digests"])}
     both = sorted(row_made.keys() & row_stored.keys())
-    assert len(both) >= 0.99 * len(row_stored), (len(both), len(row_stored))
     rows_made = [row_made[d] for d in both]
     rows_stored = [row_stored[d] for d in both]
+    if header["made_on"] == stored_header["made_on"]:
+        # The same kernel: every cloud is a shipped one and every number the same bits.
+        assert len(both) == 80
+        for name in ("ok_sa", "costs_sac", "grasp_sa"):
+            assert np.array_equal(made[name][rows_made], stored[name][rows_stored], equal_nan=True)
+        return
+    # Another CPU kind: a cloud a tab observes from a stored rope may differ in its last bits
+    # (one of 600 on an AVX2 EPYC against the AVX-512 box's file; the app then scans that start
+    # in full), and the scans' numbers differ in theirs.
+    assert len(both) >= 78, len(both)
     assert np.array_equal(made["ok_sa"][rows_made], stored["ok_sa"][rows_stored])
     # Numbers: all but a few within 0.2 % (AVX2 against AVX-512: 3 of 359,400 costs, where a
     # registration went another way, and 167 of 89,850 grasp distances of ~1 mm off by ~5 um)
@@ -65,7 +72,18 @@ def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
         close = np.isclose(
             made[name][rows_made], stored[name][rows_stored], rtol=2e-3, atol=1e-9, equal_nan=True
         )
-        assert close.mean() >= 0.995, (name, int((~close).sum()), close.size)
+        assert close.mean() >= 0.99, (name, int((~close).sum()), close.size)
+
+
+@pytest.mark.parametrize("task", ["overhand", "figure8"])
+@pytest.mark.parametrize("level", ["main", "hard"])
+@pytest.mark.parametrize("kind", ["avx512", "avx2"])
+def test_each_cpu_kind_has_its_own_shipped_scans(task, level, kind) -> None:
+    """The app uses a summary only on the CPU kind that made it, so each kind ships its own."""
+    path = defaults.scans_path(level, "train", task, kind=kind)
+    assert path.name == f"scans_{level}_train_{kind}.npz"
+    _, header = read_npz(path, "scans")
+    assert header["made_on"] == kind
 
 
 def test_a_library_of_ones_own_uses_no_shipped_scans(tmp_path) -> None:
