@@ -545,7 +545,7 @@ class SceneDrawer:
                 if i + 1 >= n:
                     if recorder.finished:
                         break
-                    time.sleep(0.005)
+                    recorder.wait_for_frame(i + 1, 0.1)  # woken by the frame (or the end)
                     continue
                 if i < 0:
                     t_wall0 = time.perf_counter() - recorder.frame(0)[0] / speed

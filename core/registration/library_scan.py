@@ -183,6 +183,25 @@ class LibraryRegistrar:
         """Register the scene against every demo (bad demos: ok False, cost +inf; never raises)."""
         params = params or self.params
         demo = self.prepare(demo_clouds, key, params)
+        return self.scan_side(
+            scene_cloud,
+            demo,
+            params=params,
+            keep_correspondence=keep_correspondence,
+            timings=timings,
+        )
+
+    def scan_side(
+        self,
+        scene_cloud: np.ndarray,
+        demo: CloudSide,
+        *,
+        params: RegistrationParams | None = None,
+        keep_correspondence: bool = False,
+        timings: dict[str, float] | None = None,
+    ) -> ScanResult:
+        """Register the scene against every demo of a prepared demo side (see :meth:`scan`)."""
+        params = params or self.params
         pool = self._worker_pool()
         first = None
         if pool is None or timings is not None or not can_start_early(params, keep_correspondence):

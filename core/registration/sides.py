@@ -61,6 +61,27 @@ class CloudSide:
     def __len__(self) -> int:
         return int(self.n_a.shape[0])
 
+    def rows(self, indices: Sequence[int]) -> CloudSide:
+        """The side of these clouds alone, in this order: the arrays `demo_side` would build
+        from them (the same values, padded to their own largest cloud), without factorising
+        any cloud again."""
+        idx = np.asarray(indices, dtype=int)
+        n_max = max([len(self.clouds[a]) for a in idx] + [5])
+        k_max = n_max + 4
+        return CloudSide(
+            clouds=tuple(self.clouds[a] for a in idx),
+            centre_a3=self.centre_a3[idx],
+            x_an3=self.x_an3[idx, :n_max],
+            mask_an=self.mask_an[idx, :n_max],
+            g_ank=self.g_ank[idx, :n_max, :k_max],
+            mu_ak=self.mu_ak[idx, :k_max],
+            h_ak3=self.h_ak3[idx, :k_max],
+            theta_apk=self.theta_apk[idx, : 4 + n_max, :k_max],
+            n_a=self.n_a[idx],
+            ok_a=self.ok_a[idx],
+            reason_a=tuple(self.reason_a[a] for a in idx),
+        )
+
     def basis(self, a: int) -> TpsBasis:
         """The TpsBasis of cloud a (normalised coordinates)."""
         n = int(self.n_a[a])

@@ -292,10 +292,12 @@ class LibraryFeaturizer:
     def scan_demos(self, cloud_n3: np.ndarray, demos: Sequence[int]) -> ScanResult:
         """Register the cloud against these demos only (rows in the order given): each row is
         the full scan's registration of that demo, bit for bit (a demo's registration does not
-        depend on the others). A registrar of its own, so the library's prepared side stays
+        depend on the others). Their demo side is cut from the library's prepared one (no
+        demo factorised again); a registrar of its own scans it, so the library's side stays
         in the shared one's cache."""
-        registrar = LibraryRegistrar(self.params)
-        return registrar.scan(cloud_n3, [self._clouds[int(a)] for a in demos], params=self.params)
+        library = self.registrar.prepare(self._clouds, key=self.library_hash, params=self.params)
+        side = library.rows([int(a) for a in demos])
+        return LibraryRegistrar(self.params).scan_side(cloud_n3, side, params=self.params)
 
     @property
     def memo_stats(self) -> tuple[int, int]:

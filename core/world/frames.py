@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -40,7 +41,8 @@ class FrameRecorder:
     """Collects frames during an execution, ``dt`` simulated seconds apart.
 
     Another thread may read frames while the simulation appends them (:meth:`frame`,
-    ``len``): an animation can start playing at the first frame instead of after the run.
+    ``len``, :meth:`wait_for_frame`): an animation can start playing at the first frame
+    instead of after the run.
     """
 
     def __init__(self, dt: float, correct: FrameCorrection | None = None) -> None:
@@ -51,7 +53,9 @@ class FrameRecorder:
         # the nodes returned, keeping their velocities); None in a world that only records.
         self.correct = correct
         self.every = 0  # sim steps between frames, set by the world that records
-        self.finished = False
+        # Wakes a reader waiting for the next frame (instead of it polling the length).
+        self._arrived = threading.Condition()
+        self._finished = False
         self._t: list[float] = []
         self._nodes: list[np.ndarray] = []
         self._grippers: list[np.ndarray] = []
@@ -63,6 +67,33 @@ class FrameRecorder:
 
     def __len__(self) -> int:
         return len(self._t)
+
+    @property
+    def finished(self) -> bool:
+        """True once the execution has ended (no frame follows)."""
+        return self._finished
+
+    @finished.setter
+    def finished(self, value: bool) -> None:
+        with self._arrived:
+            self._finished = bool(value)
+            self._arrived.notify_all()
+
+    def wait_for_frame(self, i: int, timeout: float) -> bool:
+        """Wait until frame ``i`` is recorded or the execution has ended, at most ``timeout``
+        s; True if frame ``i`` is there."""
+        with self._arrived:
+            self._arrived.wait_for(lambda: len(self._t) > i or self._finished, timeout)
+        return len(self._t) > i
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        del state["_arrived"]  # a lock does not pickle; a copy gets its own
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._arrived = threading.Condition()
 
     def frame(self, i: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Frame i as (time, nodes_k3, grippers_g3, closed_g)."""
@@ -80,6 +111,8 @@ class FrameRecorder:
         self._nodes.append(np.asarray(nodes_k3, dtype=np.float32))
         self._grippers.append(np.asarray(grippers_g3, dtype=np.float32))
         self._closed.append(np.asarray(closed_g, dtype=bool))
+        with self._arrived:
+            self._arrived.notify_all()
 
     def frames(self) -> ExecutionFrames | None:
         """Everything recorded (None when nothing was recorded)."""

@@ -266,6 +266,34 @@ def test_scan_reports_bad_demos_without_stopping() -> None:
     assert int(np.argmin(result.nn_cost_a)) == 5
 
 
+def test_rows_of_a_demo_side_are_the_side_of_those_demos_and_scan_alike() -> None:
+    from dataclasses import fields
+
+    from knotlab.core.registration.sides import demo_side
+
+    demos = _library(11, [90, 120, 60, 150])
+    demos += [np.ones((9, 3)), rope_cloud(np.random.default_rng(3), 70)]  # one cannot factorise
+    full = demo_side(demos, SCAN)
+    for pick in ([2, 0], [5, 4, 1], [3], [4]):
+        cut, built = full.rows(pick), demo_side([demos[a] for a in pick], SCAN)
+        for f in fields(full):
+            if f.name == "_casts":
+                continue
+            a, b = getattr(cut, f.name), getattr(built, f.name)
+            if f.name == "clouds":
+                assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+            elif f.name == "reason_a":  # the same reasons, naming each demo's library index
+                assert a == tuple(full.reason_a[i] for i in pick)
+                assert [bool(r) for r in a] == [bool(r) for r in b]
+            else:
+                assert a.shape == b.shape and np.array_equal(a, b), f.name
+        scene = demos[0] + 0.01
+        by_rows = LibraryRegistrar(SCAN).scan_side(scene, cut)
+        by_clouds = LibraryRegistrar(SCAN).scan(scene, [demos[a] for a in pick])
+        assert np.array_equal(by_rows.costs_ac, by_clouds.costs_ac, equal_nan=True)
+        assert by_rows.ok_a.tolist() == by_clouds.ok_a.tolist()
+
+
 def test_bad_inputs_raise_clear_errors() -> None:
     cloud = rope_cloud(np.random.default_rng(0), 60)
     with pytest.raises(InvalidInputError, match="empty"):
