@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import viser
 
 from knotlab.app.web.scene import candidate_label, rank_colour
-from knotlab.app.web.session_records import Phase, SessionView
+from knotlab.app.web.session_records import STOP_MODEL_KEY, Phase, SessionView
 
 if TYPE_CHECKING:
     from knotlab.app.web.jobs import HeldOutScores, RetrainOutcome
@@ -22,6 +22,17 @@ if TYPE_CHECKING:
     from knotlab.labeling_db.store import LabelMix
 
 MAX_LISTED = 9  # hotkeys 1-9 select by rank
+# The actions' hotkeys (the ranks' 1-9 besides); none is a key viser's camera moves on.
+HOTKEYS: tuple[tuple[str, str], ...] = (
+    ("Try the selected candidate", "enter"),
+    ("Accept", "Y"),
+    ("Reject", "N"),
+    ("Dead end", "F"),
+    ("New rope", "R"),
+    ("Undo last label", "U"),
+    ("Stop the model here", STOP_MODEL_KEY),
+    ("Label where the model goes (on / off)", "M"),
+)
 _UNSET = object()
 # A banner for a lost server. viser keeps the panel on screen when its websocket closes, only
 # dimmed and frozen (an inline style with "pointer-events: none" on the GUI's wrapper); this
@@ -187,7 +198,7 @@ class LabelPanels:
                     "Undo last label (U)", icon=icon.ARROW_BACK_UP, disabled=True
                 )
                 self.stop_model_button = gui.add_button(
-                    "Stop the model here (S)",
+                    f"Stop the model here ({STOP_MODEL_KEY})",
                     color="orange",
                     icon=icon.PLAYER_STOP,
                     visible=False,
@@ -261,15 +272,18 @@ class LabelPanels:
         self._submit_name: Callable[[], bool] | None = None
         self._name_hint: Any = None  # the name dialog's message line, while it is open
         gui = self.client.gui
+        action = {
+            "Try the selected candidate": self._enter,
+            "Accept": a.accept,
+            "Reject": a.reject,
+            "Dead end": a.dead_end,
+            "New rope": a.resample,
+            "Undo last label": a.undo,
+            "Stop the model here": a.stop_model,
+            "Label where the model goes (on / off)": self._toggle_model_mode,
+        }
         keys: list[tuple[str, str, Callable[[], None]]] = [
-            ("Try the selected candidate", "enter", self._enter),
-            ("Accept", "Y", a.accept),
-            ("Reject", "N", a.reject),
-            ("Dead end", "F", a.dead_end),
-            ("New rope", "R", a.resample),
-            ("Undo last label", "U", a.undo),
-            ("Stop the model here", "S", a.stop_model),
-            ("Label where the model goes (on / off)", "M", self._toggle_model_mode),
+            (label, key, action[label]) for label, key in HOTKEYS
         ]
         for r in range(1, MAX_LISTED + 1):
             keys.append((f"Select rank {r}", str(r), _bind(a.select, r)))

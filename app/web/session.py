@@ -32,6 +32,7 @@ import numpy as np
 
 from knotlab.app.web.resources import AppResources, RankingModel
 from knotlab.app.web.session_records import (
+    STOP_MODEL_KEY,
     Candidate,
     DriveOutcome,
     Phase,
@@ -59,6 +60,8 @@ RESERVED_NAMES: frozenset[str] = frozenset({"oracle"})
 ShownScan: TypeAlias = ScanResult | SummaryScan
 # How a try is simulated: (state, cloud, demo index, frame recorder) -> outcome.
 Simulate = Callable[[SimSnapshot, np.ndarray, int, FrameRecorder], ActionOutcome]
+
+DRIVING_NOW = f"the model is driving this rope: stop it first ({STOP_MODEL_KEY})"
 
 
 class LabelSession:
@@ -396,7 +399,9 @@ class LabelSession:
             if on and self.phase is Phase.CHOOSING and fresh and self.candidates:
                 self._stop_model.clear()
                 self.phase = Phase.MODEL
-                self.message = "the model drives this rope until its choice fails (S stops it)"
+                self.message = (
+                    f"the model drives this rope until its choice fails ({STOP_MODEL_KEY} stops it)"
+                )
             elif not on and self.phase is Phase.MODEL:
                 self._stop_model.set()
             return self.view()
@@ -469,7 +474,8 @@ class LabelSession:
                 self._hand_over(None, "you stopped the model")
                 return DriveOutcome.HANDED_OVER
             self.phase = Phase.MODEL
-            self.message = f"the model drives: step {self.first_step + 1} (S stops it)"
+            step = self.first_step + 1
+            self.message = f"the model drives: step {step} ({STOP_MODEL_KEY} stops it)"
             return DriveOutcome.CONTINUES
 
     def _hand_over(self, failed_rank: int | None, why: str) -> None:
@@ -620,7 +626,7 @@ class LabelSession:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
             if self.phase is Phase.MODEL:
-                raise SessionError("the model is driving this rope: stop it first (S)")
+                raise SessionError(DRIVING_NOW)
             old = self.episode
             self.message = ""  # what was said about the old rope is not about the new one
             if old is not None and old.start_state_id is not None:
@@ -642,7 +648,7 @@ class LabelSession:
             if self.phase is Phase.TRYING:
                 raise SessionError("wait for the try to finish")
             if self.phase is Phase.MODEL:
-                raise SessionError("the model is driving this rope: stop it first (S)")
+                raise SessionError(DRIVING_NOW)
             if self.episode is None or self.store.episode(self.episode.episode_id).n_labels == 0:
                 # A finished episode stays finished: undoing into it would silently abandon
                 # the rope on screen. Said in the status area, where the labeller looks.

@@ -17,6 +17,9 @@ from knotlab.core.outcomes import StepOutcome
 from knotlab.core.selection.ranking import RankedDemo
 from knotlab.core.world.frames import ExecutionFrames
 
+# The key that stops the model where it is (not S: viser's camera moves on W, A, S, D, Q, E).
+STOP_MODEL_KEY = "X"
+
 
 class Phase(StrEnum):
     """Where a session is in the labelling protocol."""

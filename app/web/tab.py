@@ -24,7 +24,13 @@ from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
 from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, browser_scale_of
 from knotlab.app.web.session import FRAME_DT, LabelSession
-from knotlab.app.web.session_records import DriveOutcome, Phase, SessionError, SessionView
+from knotlab.app.web.session_records import (
+    STOP_MODEL_KEY,
+    DriveOutcome,
+    Phase,
+    SessionError,
+    SessionView,
+)
 from knotlab.app.web.sim_pool import SimPoolClosedError
 from knotlab.core.errors import KnotlabError
 from knotlab.core.world.frames import FrameRecorder
@@ -341,7 +347,7 @@ class LabelTab:
             chosen = view.candidates[0]
             view.message = (
                 f"the model executes its choice #{chosen.ranked.rank} {chosen.ranked.demo_key} "
-                "(S stops it after this step)"
+                f"({STOP_MODEL_KEY} stops it after this step)"
             )
             with self.client.atomic():
                 if labelling:

@@ -1,5 +1,5 @@
 """Label where the model goes, in the browser: the checkbox lets the model's own choices move the
-rope (fast-forwarded) until one fails or S stops it; the labeller labels that state, and the
+rope (fast-forwarded) until one fails or X stops it; the labeller labels that state, and the
 store records which policy and model reached it."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def _tick_model_mode(tab) -> None:
     wait_until(lambda: tab.session.view().model_mode, 10, "the mode on")
 
 
-def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
+def test_x_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
     tab = tabs("uma", submit="enter")  # keyboard only
     tab.press("m")
     wait_until(lambda: tab.session.view().model_mode, 10, "M to turn the mode on")
@@ -37,17 +37,17 @@ def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
     wait_until(checkbox.is_checked, 10, "the checkbox ticked by M")
     wait_until(lambda: tab.session.view().phase is Phase.MODEL, 20, "the model to drive")
     wait_until(
-        lambda: tab.page.get_by_role("button", name="Stop the model here (S)").is_visible(),
+        lambda: tab.page.get_by_role("button", name="Stop the model here (X)").is_visible(),
         10,
         "the stop button",
     )
-    tab.press("s")
+    tab.press("x")
     view = wait_until(
         lambda: (v := tab.session.view()).phase is Phase.CHOOSING and v,
         DRIVE_TIMEOUT,
         "the model to hand the rope over",
     )
-    assert "you stopped the model" in view.message  # the model was mid-step when S came
+    assert "you stopped the model" in view.message  # the model was mid-step when X came
     wait_until(
         lambda: "label " in tab.page.inner_text("body") and "uma" in tab.page.inner_text("body"),
         10,
@@ -66,7 +66,7 @@ def test_s_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
         wait_until(lambda: tab.session.view().phase is Phase.CHOOSING, 20, "the reject")
     wait_until(lambda: app.store.labels(labeller="uma"), 20, "the label stored")
     stored = _labelled(app, "uma")
-    assert view.first_step >= 1  # S came while the first step ran: the model moved the rope
+    assert view.first_step >= 1  # X came while the first step ran: the model moved the rope
     reached = stored.execution.metadata[REACHED_BY]
     assert reached["step"] == view.first_step and reached["why"] == "you stopped the model"
     assert reached["model"] == app.resources.current.version
@@ -108,3 +108,27 @@ def test_the_model_drives_until_its_choice_fails_then_the_labeller_takes_over(ta
     assert reached["chosen_before"] == list(episode.policy_chosen)
     assert reached["why"].startswith("the model's choice failed here")
     assert stored.execution.steps[0].chosen_demo == judged.last_try.demo_key
+
+
+def test_the_stop_key_leaves_the_camera_where_it_is(tabs):
+    """X, not S: viser moves the camera while W, A, S, D, Q or E is held, so S stopped the model
+    and backed the view away from the rope the labeller was about to label."""
+    import time
+
+    import numpy as np
+
+    tab = tabs("vic")
+    camera = tab.server_tab.client.camera
+
+    def held(key: str) -> None:
+        tab.focus_canvas()
+        tab.page.keyboard.down(key)
+        time.sleep(0.4)
+        tab.page.keyboard.up(key)
+
+    before = np.array(camera.position)
+    held("x")
+    time.sleep(1.0)  # a moved camera would have reached the server by now
+    assert np.allclose(camera.position, before, atol=1e-9)
+    held("s")  # the key it replaced does move it: this check can see a move
+    wait_until(lambda: not np.allclose(camera.position, before, atol=1e-3), 10, "S to move it")
