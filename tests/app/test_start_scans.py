@@ -103,10 +103,11 @@ def test_tasks_scans_refuses_to_overwrite_and_writes_elsewhere(tmp_path, capsys)
     lib = mini_library(2).save(tmp_path / "lib.npz")
     out = tmp_path / "scans.npz"
     argv = ["tasks", "scans", "--library", str(lib), "--out", str(out), "--no-progress"]
+    argv += ["--tasks", "20"]  # the first 20 starts: two clouds each
     assert cli.main(argv) == 0
-    assert "wrote 600 start-scan summaries of main" in capsys.readouterr().out
+    assert "wrote 40 start-scan summaries of main" in capsys.readouterr().out
     resources = load_resources(lib, defaults.task_set_path("main", "train"), 1)
-    assert resources.load_start_scans(out).startswith("600 precomputed")
+    assert resources.load_start_scans(out).startswith("40 precomputed")
     assert cli.main(argv) == 2  # its own file too: only with --force
     assert cli.main([*argv, "--force"]) == 0
 
