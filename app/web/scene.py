@@ -60,6 +60,7 @@ PLAYBACK_SPEED = 2.0  # animation runs at twice simulated time: a 6 s execution 
 MODEL_SPEED = 6.0  # the model's own steps are fast-forwarded: a 6 s execution plays in 1 s
 
 
+CAPTION_LIFT_M = 0.045  # the selected caption over the highest path; badges sit 0.015 over theirs
 SceneView = Literal["label", "inspect", "playback"]  # what a tab's 3D view shows
 
 
@@ -102,13 +103,22 @@ def drawn_candidates(view: SessionView) -> list[Candidate]:
 def label_anchor(c: Candidate, view: SessionView) -> np.ndarray:
     """Where a candidate's 3D text sits: the selected caption above its path's highest point,
     the badges spread along their paths by rank so that they do not stack up."""
-    active = [g for g in range(2) if c.closed_gt[g].any()] or [0]
-    path = np.asarray(c.positions_gt3[active[0]], dtype=np.float64)
+    path = _labelled_path(c)
     if c.ranked.rank == view.selected:
-        return path[int(np.argmax(path[:, 2]))] + (0.0, 0.0, 0.03)
+        # Over its own path's highest point, but above every candidate's path: the badges sit
+        # on theirs, and one under the caption would be written over it.
+        top = path[int(np.argmax(path[:, 2]))]
+        highest = max(float(_labelled_path(o)[:, 2].max()) for o in view.candidates)
+        return np.array([top[0], top[1], max(float(top[2]), highest) + CAPTION_LIFT_M])
     n = max(len(view.candidates) - 1, 1)
     at = 0.25 + 0.5 * (c.ranked.rank - 1) / n
     return path[min(int(at * len(path)), len(path) - 1)] + (0.0, 0.0, 0.015)
+
+
+def _labelled_path(c: Candidate) -> np.ndarray:
+    """The path a candidate's text goes with: its first moving gripper's."""
+    active = [g for g in range(2) if c.closed_gt[g].any()] or [0]
+    return np.asarray(c.positions_gt3[active[0]], dtype=np.float64)
 
 
 def framed_points(view: SessionView) -> tuple[np.ndarray, np.ndarray]:

@@ -72,6 +72,14 @@ def assert_framed(tab, what: str, shot: str) -> None:
     ((u, _v),) = tab.project(label_anchor(chosen, view)[None])
     width = TEXT_PX_PER_CHAR * len(badge_text(chosen, view))
     assert canvas["x"] <= u and u + width <= panel["x"], f"{what}: the caption is cut"
+    # No badge is written over the caption: each one whose text starts under the caption's
+    # width lies a line's height lower on screen, or higher.
+    for c in view.candidates:
+        if c.ranked.rank == view.selected:
+            continue
+        ((bu, bv),) = tab.project(label_anchor(c, view)[None])
+        if u - TEXT_PX_PER_CHAR * len(badge_text(c, view)) <= bu <= u + width:
+            assert abs(bv - _v) >= 14, f"{what}: badge #{c.ranked.rank} under the caption"
     uv = tab.project(np.concatenate([markers, paths, view.rope_nodes_k3]))
     spread = np.ptp(uv, axis=0) / (panel["x"] - canvas["x"], canvas["height"])
     assert spread.max() > 0.5, f"{what}: the candidates fill only {spread} of the free view"
