@@ -37,6 +37,23 @@ def _candidate_points(view) -> tuple[np.ndarray, np.ndarray]:
     return np.array(markers), np.concatenate(paths)
 
 
+def assert_no_badge_under_the_caption(tab, what: str) -> None:
+    """No badge is written over the selected caption: each one whose text starts under the
+    caption's width lies a line's height lower on screen, or higher."""
+    from knotlab.app.web.scene import TEXT_PX_PER_CHAR, badge_text, label_anchor
+
+    view = tab.session.view()
+    chosen = next(c for c in view.candidates if c.ranked.rank == view.selected)
+    ((u, v),) = tab.project(label_anchor(chosen, view)[None])
+    width = TEXT_PX_PER_CHAR * len(badge_text(chosen, view))
+    for c in view.candidates:
+        if c.ranked.rank == view.selected:
+            continue
+        ((bu, bv),) = tab.project(label_anchor(c, view)[None])
+        if u - TEXT_PX_PER_CHAR * len(badge_text(c, view)) <= bu <= u + width:
+            assert abs(bv - v) >= 14, f"{what}: badge #{c.ranked.rank} under the caption"
+
+
 def assert_framed(tab, what: str, shot: str) -> None:
     """Every candidate's markers and paths project inside the canvas, left of the side panel,
     and with the rope fill a fair part of that space (not a few pixels in the middle)."""
@@ -72,14 +89,7 @@ def assert_framed(tab, what: str, shot: str) -> None:
     ((u, _v),) = tab.project(label_anchor(chosen, view)[None])
     width = TEXT_PX_PER_CHAR * len(badge_text(chosen, view))
     assert canvas["x"] <= u and u + width <= panel["x"], f"{what}: the caption is cut"
-    # No badge is written over the caption: each one whose text starts under the caption's
-    # width lies a line's height lower on screen, or higher.
-    for c in view.candidates:
-        if c.ranked.rank == view.selected:
-            continue
-        ((bu, bv),) = tab.project(label_anchor(c, view)[None])
-        if u - TEXT_PX_PER_CHAR * len(badge_text(c, view)) <= bu <= u + width:
-            assert abs(bv - _v) >= 14, f"{what}: badge #{c.ranked.rank} under the caption"
+    assert_no_badge_under_the_caption(tab, what)
     uv = tab.project(np.concatenate([markers, paths, view.rope_nodes_k3]))
     spread = np.ptp(uv, axis=0) / (panel["x"] - canvas["x"], canvas["height"])
     assert spread.max() > 0.5, f"{what}: the candidates fill only {spread} of the free view"

@@ -7,6 +7,7 @@ from __future__ import annotations
 from knotlab.app.web.session_records import Phase
 from knotlab.core.selection.labels import REACHED_BY
 from tests.browser.conftest import wait_until
+from tests.browser.test_labelling_view import assert_no_badge_under_the_caption
 
 DRIVE_TIMEOUT = 120.0  # s: a few starts of up to five fast-forwarded model steps
 
@@ -53,6 +54,8 @@ def test_x_stops_the_model_and_the_labeller_labels_where_it_stopped(tabs, app):
         10,
         "the hand-over said in the panel",
     )
+    tab.settled_camera()
+    assert_no_badge_under_the_caption(tab, "where the model stopped")
     tab.screenshot("model_stopped")
     for _ in range(len(view.candidates)):  # Enter tries; Y accepts, N rejects a failed try
         tab.press("Enter")
