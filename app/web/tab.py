@@ -57,6 +57,9 @@ class LabelTab:
         self._model_mode = False  # label where the model goes (the Label tab's checkbox)
         self._driver: threading.Thread | None = None  # runs the model's steps while it drives
         self._driver_lock = threading.Lock()
+        # Model redraws come from the retrain thread and from switches: one at a time, each
+        # reading the app's state inside it, so a stale table never lands after a fresh one.
+        self._models_lock = threading.Lock()
         self._disagreements: dict = {}
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
@@ -554,9 +557,13 @@ class LabelTab:
 
     def refresh_models(self) -> None:
         """Redraw the active model, the model list, and the last retrain's comparison."""
-        self.panels.show_active(self.app.active_text())
-        self.panels.show_models(self.app.model_rows())
-        self.panels.show_comparison(self.app.last_outcome, self.app.pending is not None)
+        # The line saying which model ranks goes last: whoever sees it changed (a labeller, a
+        # test) then finds the table and the comparison already agreeing with it.
+        with self._models_lock:
+            text, rows = self.app.active_text(), self.app.model_rows()
+            self.panels.show_models(rows)
+            self.panels.show_comparison(self.app.last_outcome, self.app.pending is not None)
+            self.panels.show_active(text)
 
     def show_label_mix(self, mix: LabelMix) -> None:
         """Redraw the labels a retrain would fit on (not in a tab that has gone)."""

@@ -127,6 +127,7 @@ def test_a_worse_retrain_stays_inactive_and_a_restart_keeps_the_active_model(
         wait_until(lambda: app.resources.current.version == new, 10, "the switch")
         page.get_by_text(f"Next states are ranked by {label} active since").wait_for(timeout=10_000)
         assert "switched to it by lea" in panels.model_status.content
+        # Drawn before the line above (it would race if the line came first).
         assert f"| **▶ active** | {new[:8]} |" in panels.model_table.content
         record = app.store.active_model()  # what the next restart ranks with
         assert record is not None and (record.version, record.reason) == (
