@@ -63,9 +63,14 @@ def measure_new_state(tab, n: int, label: str = "", look: float = 0.0) -> list[f
     return out
 
 
-def measure_accept(tab, n: int) -> list[float]:
+ACCEPTED: dict[str, list[float]] = {}  # the server's share of each accept
+RANKED: dict[str, list[float]] = {}  # of which ranking the next state (its scan, if not ready)
+
+
+def measure_accept(tab, n: int, label: str = "") -> list[float]:
     """Seconds from Y (accept a try) to the next state's candidates drawn in the browser."""
     out = []
+    server, ranked = ACCEPTED.setdefault(label, []), RANKED.setdefault(label, [])
     while len(out) < n:
         tab.focus_canvas()
         tab.page.keyboard.press("Enter")
@@ -90,6 +95,8 @@ def measure_accept(tab, n: int) -> list[float]:
             timeout=10000,
         )
         out.append(time.perf_counter() - t0)
+        server.append(tab.server_tab.timings.get("action_to_drawn_s", float("nan")))
+        ranked.append(tab.session.rank_s)
     return out
 
 
@@ -259,7 +266,9 @@ def main() -> int:
                 ),
                 _row("Enter to first animation frame, 1 tab", measure_try(tab, args.tries, "1")),
                 _row("  first simulated frame sent (server), 1 tab", SIMULATED["1"]),
-                _row("accept (Y) to next state drawn, 1 tab", measure_accept(tab, args.tries)),
+                _row("accept (Y) to next state drawn, 1 tab", measure_accept(tab, args.tries, "1")),
+                _row("  server share (accept + draw calls), 1 tab", ACCEPTED["1"]),
+                _row("    of which ranking the next state, 1 tab", RANKED["1"]),
             ]
             suggest = measure_suggest(tab, app, 3)
             rows += [
@@ -304,7 +313,11 @@ def main() -> int:
                 ),
                 _row("Enter to first animation frame, 4 tabs", measure_try(tab, args.tries, "4")),
                 _row("  first simulated frame sent (server), 4 tabs", SIMULATED["4"]),
-                _row("accept (Y) to next state drawn, 4 tabs", measure_accept(tab, args.tries)),
+                _row(
+                    "accept (Y) to next state drawn, 4 tabs", measure_accept(tab, args.tries, "4")
+                ),
+                _row("  server share (accept + draw calls), 4 tabs", ACCEPTED["4"]),
+                _row("    of which ranking the next state, 4 tabs", RANKED["4"]),
             ]
             suggest = measure_suggest(tab, app, 2)
             rows.append(_row("Suggest again, 4 tabs", suggest))
