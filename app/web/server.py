@@ -302,10 +302,11 @@ class LabelApp:
         final = report.kind is not ReportKind.STAGE
         title, colour = _finish_note(report.kind, refused=self.pending is not None)
         for tab in self.tabs():
-            tab.show_retrain()
-            if final:
+            if final:  # the table and comparison first: the retrain's sentence refers to them
                 tab.refresh_models()
                 tab.show_label_mix(self.label_mix())
+            tab.show_retrain()
+            if final:
                 tab.notify(title, self._retrain_text, colour)
 
     def _take(self, outcome: RetrainOutcome) -> None:
