@@ -17,6 +17,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.access import AccessGate
+from knotlab.app.web.icons import warm_icon_cache_in_background
 from knotlab.app.web.jobs import ReportKind, RetrainJob, RetrainOutcome, RetrainReport
 from knotlab.app.web.resources import (
     AppResources,
@@ -81,6 +82,7 @@ class LabelApp:
         test_tasks_path: Path | None = None,
         token: str | None = None,
     ) -> None:
+        warm_icon_cache_in_background()  # before any tab needs them
         self.store = store
         self.lite_rendering = lite_rendering  # every tab's scene drawn for software WebGL
         self.token = token  # None: no token asked (loopback)

@@ -22,7 +22,7 @@ from knotlab.app.web.inspect import Inspector
 from knotlab.app.web.inspect_panel import InspectPanel
 from knotlab.app.web.panels import Actions, LabelPanels
 from knotlab.app.web.playback_panel import PlaybackPanel
-from knotlab.app.web.scene import MODEL_SPEED, SceneDrawer, browser_scale_of
+from knotlab.app.web.scene import MODEL_SPEED, BrowserScale, SceneDrawer, browser_scale_of
 from knotlab.app.web.session import FRAME_DT, LabelSession
 from knotlab.app.web.session_records import (
     STOP_MODEL_KEY,
@@ -63,6 +63,9 @@ class LabelTab:
         self._disagreements: dict = {}
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
+        # Asked before the panels are built: the browser answers in the order it was asked, so
+        # asked after them the answers waited for a few hundred GUI messages to be handled.
+        self._browser_facts = _BrowserFacts(client)
         self.drawer = SceneDrawer(client, on_pick=self.select, lite=app.lite_rendering)
         self.panels = LabelPanels(
             client,
@@ -116,14 +119,7 @@ class LabelTab:
     # ------------------------------------------------------------------ start
     def open(self) -> None:
         """Ask for the labeller's name (remembered by the browser) and start labelling."""
-        self.drawer.browser = browser_scale_of(self.client)
-        name = None
-        try:
-            name = self.client.local_storage.get_item(NAME_KEY, timeout=3.0)
-        except (RuntimeError, TimeoutError) as exc:
-            log.info(
-                "client %s: no local storage (%s); asking the name", self.client.client_id, exc
-            )
+        self.drawer.browser, name = self._browser_facts.result()
         if name and name.strip():
             self.begin(name)
         else:
@@ -611,3 +607,28 @@ def _trying(view: SessionView) -> SessionView:
     view.phase = Phase.TRYING
     view.message = "simulating..."
     return view
+
+
+class _BrowserFacts:
+    """The browser's scale and remembered labeller name, asked on a thread of its own."""
+
+    def __init__(self, client: viser.ClientHandle) -> None:
+        self._client = client
+        self._scale = BrowserScale()
+        self._name: str | None = None
+        self._thread = threading.Thread(target=self._ask, name="browser-facts", daemon=True)
+        self._thread.start()
+
+    def _ask(self) -> None:
+        self._scale = browser_scale_of(self._client)
+        try:
+            self._name = self._client.local_storage.get_item(NAME_KEY, timeout=3.0)
+        except (RuntimeError, TimeoutError) as exc:
+            log.info(
+                "client %s: no local storage (%s); asking the name", self._client.client_id, exc
+            )
+
+    def result(self) -> tuple[BrowserScale, str | None]:
+        """(scale, name or None), waiting for the browser's answers (at most ~6 s)."""
+        self._thread.join()
+        return self._scale, self._name
