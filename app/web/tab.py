@@ -64,7 +64,7 @@ class LabelTab:
         self.timings: dict[str, float] = {}  # last measured latencies (bench/app_latency.py)
         self.ready = threading.Event()  # a first state is drawn
         # Asked before the panels are built: the browser answers in the order it was asked, so
-        # asked after them the answers waited for a few hundred GUI messages to be handled.
+        # asked after them the answers waited for its ~140 panel messages to be handled.
         self._browser_facts = _BrowserFacts(client)
         self.drawer = SceneDrawer(client, on_pick=self.select, lite=app.lite_rendering)
         self.panels = LabelPanels(
