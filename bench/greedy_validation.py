@@ -60,6 +60,31 @@ def parse_models(text: str) -> dict[str, Path]:
     return out
 
 
+def validation_starts(task_name: str, level_name: str, n: int, workers: int) -> tuple[TaskSet, int]:
+    """``n`` fresh starts of a level's training distribution on the validation seed stream
+    (named ``LEVEL-val-NNNN``), and that stream's seed: the same for every script that asks."""
+    task = get_task(task_name)
+    library = DemoLibrary.load(str(task.files.library_path))
+    level = level_of(task, level_name)
+    seed = level.seed + VALIDATION_SEED_OFFSET
+    drawn = generate_tasks(
+        library.start_states(),
+        n,
+        split="train",  # the training distribution; its own seed stream keeps it apart
+        rho=level.rho_m,
+        seed=seed,
+        n_centres=level.n_centres,
+        level=level_name,
+        workers=workers,
+    )
+    # Named apart from the real training starts (main-val-0000, ...).
+    starts = TaskSet(
+        [dataclasses.replace(t, task_id=t.task_id.replace("-train-", "-val-")) for t in drawn],
+        {**drawn.metadata, "seed_offset": VALIDATION_SEED_OFFSET},
+    )
+    return starts, seed
+
+
 def _build_agent(key: tuple[str, str]):
     from knotlab.core.agent import Agent
     from knotlab.core.world.sim import RopeWorld
@@ -128,26 +153,8 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     models = parse_models(args.models)
-    task = get_task(args.task)
-    library_path = str(task.files.library_path)
-    library = DemoLibrary.load(library_path)
-    level = level_of(task, args.level)
-    seed = level.seed + VALIDATION_SEED_OFFSET
-    drawn = generate_tasks(
-        library.start_states(),
-        args.starts,
-        split="train",  # the training distribution; its own seed stream keeps it apart
-        rho=level.rho_m,
-        seed=seed,
-        n_centres=level.n_centres,
-        level=args.level,
-        workers=args.workers,
-    )
-    # Named apart from the real training starts (main-val-0000, ...).
-    starts = TaskSet(
-        [dataclasses.replace(t, task_id=t.task_id.replace("-train-", "-val-")) for t in drawn],
-        {**drawn.metadata, "seed_offset": VALIDATION_SEED_OFFSET},
-    )
+    library_path = str(get_task(args.task).files.library_path)
+    starts, seed = validation_starts(args.task, args.level, args.starts, args.workers)
     out = args.out_dir
     out.mkdir(parents=True, exist_ok=True)
     meta_path = out / "summary.json"

@@ -368,3 +368,39 @@ def test_search_labels_writes_the_starts_outside_the_held_out_fifth_and_reads_po
         write_labels(stored, fh, "jsonl")
     back = search_labels.dagger_executions(tmp_path, "main")
     assert [e.execution_id for e in back] == [earlier.execution_id, later.execution_id]
+
+
+def test_stage_mask_allows_only_the_demos_of_the_true_ropes_stage(project_root) -> None:
+    from knotlab.core.selection.decision import Decision
+
+    sm = load_bench_module(project_root, "stage_mask")
+    steps_a = np.array([0, 1, 2, 2, 3])
+
+    class Inner:
+        name = "greedy"
+
+        def __init__(self, scores) -> None:
+            self.scores = np.array(scores, dtype=float)
+
+        def choose(self, ctx) -> Decision:
+            return Decision(int(np.argmax(self.scores)), self.scores)
+
+    class Stage:  # the task: the stage is the rope's first node's x, for the test
+        def stage(self, nodes):
+            return SimpleNamespace(stage=int(nodes[0][0]))
+
+    def ctx(stage: int):
+        return SimpleNamespace(world=SimpleNamespace(rope_nodes=lambda: np.array([[stage, 0, 0]])))
+
+    # The inner choice is demo 4 (step 3); at stage 2 the best step-2 demo is taken instead.
+    policy = sm.StageMaskedPolicy(Inner([0.1, 0.2, 0.3, 0.5, 0.9]), Stage(), steps_a)
+    got = policy.choose(ctx(2))
+    assert got.action == 3 and np.isneginf(got.scores_a[[0, 1, 4]]).all()
+    assert policy.choose(ctx(3)).action == 4 and policy.name == "greedy+stage"
+    # No demo of the stage's step registered: the inner choice stands.
+    policy = sm.StageMaskedPolicy(Inner([0.1, 0.2, -np.inf, -np.inf, 0.9]), Stage(), steps_a)
+    assert policy.choose(ctx(2)).action == 4
+    table = sm.transition_table(
+        [{"transitions": [[0, 0, 1], [1, 2, 1], [1, 1, 2]]}, {"transitions": [[1, 2, 0]]}]
+    )
+    assert table == {(0, 0): (1, 1), (1, 1): (1, 1), (1, 2): (2, 0)}
