@@ -404,3 +404,27 @@ def test_stage_mask_allows_only_the_demos_of_the_true_ropes_stage(project_root) 
         [{"transitions": [[0, 0, 1], [1, 2, 1], [1, 1, 2]]}, {"transitions": [[1, 2, 0]]}]
     )
     assert table == {(0, 0): (1, 1), (1, 1): (1, 1), (1, 2): (2, 0)}
+
+
+def test_demo_prior_rates_count_advances_and_shift_greedys_choice(project_root) -> None:
+    from knotlab.core.selection.decision import Decision
+
+    dp = load_bench_module(project_root, "demo_prior")
+    lines = [
+        {"stage_before": 2, "tried": [{"demo": "a", "stage": 3, "knot": False}] * 3},
+        {"stage_before": 2, "tried": [{"demo": "b", "stage": 2, "knot": False}] * 3},
+        {"stage_before": 3, "tried": [{"demo": "b", "stage": 0, "knot": True}]},
+    ]
+    rate = dp.advance_rates(lines, ["a", "b", "never"])
+    # (advanced + 1) / (tried + 2); a demo never tried gets the pooled rate (4 + 1) / (7 + 2).
+    assert np.allclose(rate, [4 / 5, 2 / 6, 5 / 9])
+
+    class Inner:
+        name = "greedy"
+
+        def choose(self, ctx) -> Decision:
+            return Decision(1, np.array([1.0, 1.5, -np.inf]))
+
+    assert dp.PriorPolicy(Inner(), rate, 0.1).choose(None).action == 1  # a small prior: Q decides
+    shifted = dp.PriorPolicy(Inner(), rate, 1.0).choose(None)
+    assert shifted.action == 0 and np.isneginf(shifted.scores_a[2])  # unusable stays unusable
