@@ -230,7 +230,16 @@ def main() -> int:
         default=0.5,
         help="s a labeller looks at a state before the next R (the 'after looking' rows)",
     )
+    p.add_argument(
+        "--first-visits",
+        type=int,
+        default=3,
+        help="first visits measured while the 3 others label (one lands anywhere in their"
+        " try-judge-next cycle, 4-7 s on a 2-core box: 3 cannot tell 6 s from 7)",
+    )
     args = p.parse_args()
+    if args.first_visits < 1:
+        p.error("--first-visits must be at least 1")
     print(machine_line())
     if args.full_scans:  # an A/B switch for this measurement only
         from knotlab.app.web import session
@@ -322,7 +331,7 @@ def main() -> int:
             suggest = measure_suggest(tab, app, 2)
             rows.append(_row("Suggest again, 4 tabs", suggest))
             busy_ready: list[float] = []
-            for i in range(3):
+            for i in range(args.first_visits):
                 late = _page_ready(busy_ready, lambda i=i: open_tab(browser, app, f"late{i}"))
                 late.context.close()
             rows.append(_row("page ready, first visit, 3 others labelling", busy_ready))
