@@ -28,7 +28,9 @@ import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -118,9 +120,10 @@ def sign_test(wins: int, losses: int) -> float:
     return 1.0 if n == 0 else float(binomtest(wins, n, 0.5).pvalue)
 
 
-def summarise(lines: list[dict], names: list[str]) -> dict:
-    """Per model: successes, Wilson interval, and paired wins/losses against the first model."""
-    by = {n: {ln["task_id"]: ln["success"] for ln in lines if ln["model"] == n} for n in names}
+def summarise(lines: list[dict], names: list, key: str = "model") -> dict:
+    """Per arm (``line[key]``, a model by default): successes, Wilson interval, and paired
+    wins/losses against the first arm."""
+    by = {n: {ln["task_id"]: ln["success"] for ln in lines if ln[key] == n} for n in names}
     ref = by[names[0]]
     out = {}
     for n in names:
@@ -211,16 +214,44 @@ def main() -> int:
         print(f"{len(errored)} episodes errored: no table", file=sys.stderr)
         return 1
     _plot(summary, out / "greedy_validation.png")
-    print("| model | greedy success | Wilson 95 % | vs first: wins / losses | sign test p |")
+    print_paired_table(summary["results"], "model")
+    return 0
+
+
+def play_resumable(
+    outcomes: Path,
+    arms: list,
+    starts: TaskSet,
+    key: str,
+    job_of: Callable[[Any, RopeTask], tuple],
+    episode: Callable[[tuple], dict],
+    workers: int,
+) -> list[dict]:
+    """Every arm on every start, skipping (arm, start) pairs already in ``outcomes`` (a JSON
+    line each, ``line[key]`` naming the arm); new lines appended as they finish. All lines."""
+    lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.exists() else []
+    done = {(ln[key], ln["task_id"]) for ln in lines}
+    jobs = [job_of(a, s) for a in arms for s in starts if (a, s.task_id) not in done]
+    desc = f"{len(arms)} {key}s, {len(starts)} starts"
+    with outcomes.open("a", encoding="utf-8") as fh:
+        for _, line in imap_processes(episode, jobs, workers=workers, desc=desc):
+            fh.write(json.dumps(line) + "\n")
+            fh.flush()
+            lines.append(line)
+    return lines
+
+
+def print_paired_table(results: dict, arm: str) -> None:
+    """The Markdown table of ``summarise``'s results, one row an arm."""
+    print(f"| {arm} | greedy success | Wilson 95 % | vs first: wins / losses | sign test p |")
     print("|---|---|---|---|---|")
-    for n, r in summary["results"].items():
+    for n, r in results.items():
         lo, hi = r["wilson"]
         print(
             f"| {n} | {r['successes']}/{r['starts']} = {100 * r['rate']:.1f} % | "
             f"[{100 * lo:.1f}, {100 * hi:.1f}] | {r['wins_vs_first']} / "
             f"{r['losses_vs_first']} | {r['sign_test_p']:.3g} |"
         )
-    return 0
 
 
 def _plot(summary: dict, path: Path) -> None:

@@ -44,13 +44,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from greedy_validation import sign_test, validation_starts  # noqa: E402
+from greedy_validation import (  # noqa: E402
+    play_resumable,
+    print_paired_table,
+    summarise,
+    validation_starts,
+)
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import RopeTask  # noqa: E402
-from knotlab.core.experiments.bench.report import wilson_interval  # noqa: E402
 from knotlab.core.machine import machine_info  # noqa: E402
-from knotlab.core.parallel import PerProcess, imap_processes  # noqa: E402
+from knotlab.core.parallel import PerProcess  # noqa: E402
 from knotlab.core.selection.decision import Decision, Policy, StepContext  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
 from knotlab.core.selection.ranking import rank_order  # noqa: E402
@@ -157,44 +161,23 @@ def main() -> int:
         old = json.loads(meta_path.read_text())
         if (old.get("starts_hash"), old.get("model_hash")) != (starts.content_hash(), model_hash):
             raise SystemExit(f"{out}: made with other starts or another model; use another dir")
-    outcomes = out / "outcomes.jsonl"
-    lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.exists() else []
-    done = {(ln["arm"], ln["task_id"]) for ln in lines}
-    jobs = [
-        (args.task, library_path, str(args.model), arm, s)
-        for arm in arms
-        for s in starts
-        if (arm, s.task_id) not in done
-    ]
-    with outcomes.open("a", encoding="utf-8") as fh:
-        for _, line in imap_processes(
-            _episode, jobs, workers=args.workers, desc=f"{len(arms)} arms, {len(starts)} starts"
-        ):
-            fh.write(json.dumps(line) + "\n")
-            fh.flush()
-            lines.append(line)
-    by = {a: {ln["task_id"]: ln["success"] for ln in lines if ln["arm"] == a} for a in arms}
-    results = {}
+    lines = play_resumable(
+        out / "outcomes.jsonl",
+        arms,
+        starts,
+        "arm",
+        lambda a, s: (args.task, library_path, str(args.model), a, s),
+        _episode,
+        args.workers,
+    )
+    results = summarise(lines, arms, key="arm")
     for a in arms:
-        got, ref = by[a], by[arms[0]]
-        k = sum(got.values())
-        common = set(got) & set(ref)
-        wins = sum(got[t] and not ref[t] for t in common)
-        losses = sum(ref[t] and not got[t] for t in common)
-        results[a] = {
-            "successes": k,
-            "starts": len(got),
-            "wilson": list(wilson_interval(k, len(got))),
-            "wins_vs_first": wins,
-            "losses_vs_first": losses,
-            "sign_test_p": sign_test(wins, losses),
-            "transitions": [
-                [b, st, n, adv]
-                for (b, st), (n, adv) in transition_table(
-                    [ln for ln in lines if ln["arm"] == a]
-                ).items()
-            ],
-        }
+        results[a]["transitions"] = [
+            [b, st, n, adv]
+            for (b, st), (n, adv) in transition_table(
+                [ln for ln in lines if ln["arm"] == a]
+            ).items()
+        ]
     errored = [ln for ln in lines if ln.get("error")]
     meta_path.write_text(
         json.dumps(
@@ -218,15 +201,7 @@ def main() -> int:
         print(f"{len(errored)} episodes errored: no table", file=sys.stderr)
         return 1
     print(f"{args.task}, {args.level} level, {len(starts)} validation starts, model {model_hash}")
-    print("| arm | success | Wilson 95 % | vs first: wins / losses | sign test p |")
-    print("|---|---|---|---|---|")
-    for a, r in results.items():
-        lo, hi = r["wilson"]
-        print(
-            f"| {a} | {r['successes']}/{r['starts']} = {100 * r['successes'] / r['starts']:.1f} %"
-            f" | [{100 * lo:.1f}, {100 * hi:.1f}] | {r['wins_vs_first']} / "
-            f"{r['losses_vs_first']} | {r['sign_test_p']:.3g} |"
-        )
+    print_paired_table(results, "arm")
     for a, r in results.items():
         cells = ", ".join(f"({b},{st}) {adv}/{n}" for b, st, n, adv in r["transitions"])
         print(f"{a}: (stage before, demo step) advanced/taken: {cells}")
