@@ -45,7 +45,7 @@ from greedy_validation import (  # noqa: E402
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import RopeTask  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.parallel import PerProcess  # noqa: E402
 from knotlab.core.selection.decision import Decision, Policy, StepContext  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
@@ -126,6 +126,7 @@ def main() -> int:
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
+    print(machine_line())
     lams = [float(x) for x in args.lams.split(",")]
     for p in [args.model, *map(Path, args.tries.split(","))]:
         if not p.exists():

@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import RopeTask, TaskSet, generate_tasks  # noqa: E402
 from knotlab.core.experiments.bench.report import wilson_interval  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.parallel import PerProcess, imap_processes  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
 from knotlab.core.tasks import get_task  # noqa: E402
@@ -155,6 +155,7 @@ def main() -> int:
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
+    print(machine_line())
     models = parse_models(args.models)
     library_path = str(get_task(args.task).files.library_path)
     starts, seed = validation_starts(args.task, args.level, args.starts, args.workers)

@@ -53,7 +53,7 @@ from greedy_validation import (  # noqa: E402
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.demos.tasks import RopeTask  # noqa: E402
-from knotlab.core.machine import machine_info  # noqa: E402
+from knotlab.core.machine import machine_info, machine_line  # noqa: E402
 from knotlab.core.parallel import PerProcess  # noqa: E402
 from knotlab.core.selection.decision import Decision, Policy, StepContext  # noqa: E402
 from knotlab.core.selection.qmodel import QModel  # noqa: E402
@@ -145,6 +145,7 @@ def main() -> int:
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
+    print(machine_line())
     arms = args.arms.split(",")
     unknown = [a for a in arms if a not in ARMS]
     if unknown:
