@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -428,3 +429,56 @@ def test_demo_prior_rates_count_advances_and_shift_greedys_choice(project_root) 
     assert dp.PriorPolicy(Inner(), rate, 0.1).choose(None).action == 1  # a small prior: Q decides
     shifted = dp.PriorPolicy(Inner(), rate, 1.0).choose(None)
     assert shifted.action == 0 and np.isneginf(shifted.scores_a[2])  # unusable stays unusable
+
+
+def test_tried_neighbours_prior_counts_the_nearest_tried_states_and_shifts_greedy(
+    project_root, tmp_path
+) -> None:
+    from knotlab.core.selection.decision import Decision
+
+    tn = load_bench_module(project_root, "tried_neighbours")
+    # a state's description: log cost ratios to the nearest demo, capped; failed demos capped
+    desc = tn.describe(np.array([2.0, 1.0, np.inf, 1e9]))
+    assert np.allclose(desc, [np.log(2.0), 0.0, tn.DESCRIPTOR_CAP, tn.DESCRIPTOR_CAP])
+    # four tried states of two executions over a library of three demos: demo "a" advanced in the
+    # two states near cost profile A and failed in the two near profile B
+    near_a, near_b = [1.0, 2.0, 4.0], [4.0, 2.0, 1.0]
+    ids = ["e1", "e1", "e2", "e2"]
+    np.savez(
+        tmp_path / "scans.npz",
+        execution_id=np.array(ids),
+        step_index=np.array([0, 1, 0, 1]),
+        nn_cost_sa=np.array([near_a, near_b, near_a, near_b]),
+    )
+    lines = [
+        {"execution_id": e, "step_index": s, "stage_before": 0,
+         "tried": [{"demo": "a", "stage": int(s == 0), "knot": False}]}
+        for e, s in zip(ids, [0, 1, 0, 1], strict=True)
+    ]  # fmt: skip
+    tries = tmp_path / "tries.jsonl"
+    tries.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    ts = tn.load_tried_states(tmp_path / "scans.npz", str(tries), ("a", "b", "c"))
+    assert np.isclose(ts.rate_a[0], 3 / 6)  # (2 advanced + 1) / (4 tried + 2)
+    demos = np.array([0, 1])
+    # k = 2 nearest tried states of "a" from profile A: both advanced, shrunk by SHRINK to 1/2
+    p_a = ts.prior(tn.describe(np.array(near_a)), demos, 2)
+    assert np.isclose(p_a[0], (2 + tn.SHRINK * 0.5) / (2 + tn.SHRINK))
+    p_b = ts.prior(tn.describe(np.array(near_b)), demos, 2)
+    assert np.isclose(p_b[0], (0 + tn.SHRINK * 0.5) / (2 + tn.SHRINK))
+    assert p_a[1] == p_b[1] == ts.rate_a[1]  # never tried: its (pooled) rate, whatever the state
+    # leaving execution e1 out, state 0's neighbours are e2's only
+    held = np.array([e == "e1" for e in ids])
+    assert np.isclose(tn._prior_without(ts, 0, demos, 1, held)[0], (1 + tn.SHRINK * 2 / 4) / 3)
+
+    class Inner:
+        name = "greedy"
+
+        def choose(self, ctx) -> Decision:
+            return Decision(1, np.array([1.0, 1.2, -np.inf]))
+
+    ctx = SimpleNamespace(scan=SimpleNamespace(nn_cost_a=np.array(near_a)))
+    assert tn.NeighbourPriorPolicy(Inner(), ts, 2, 0.0).choose(ctx).action == 1
+    shifted = tn.NeighbourPriorPolicy(Inner(), ts, 2, 1.0).choose(ctx)
+    assert shifted.action == 0 and np.isneginf(shifted.scores_a[2])
+    ctx_b = SimpleNamespace(scan=SimpleNamespace(nn_cost_a=np.array(near_b)))
+    assert tn.NeighbourPriorPolicy(Inner(), ts, 2, 1.0).choose(ctx_b).action == 1
