@@ -242,6 +242,66 @@ def play_resumable(
     return lines
 
 
+def play_weight_arms(
+    *,
+    task_name: str,
+    level: str,
+    n_starts: int,
+    test: bool,
+    model: Path,
+    out_dir: Path,
+    weights: list[float],
+    identity: dict[str, Any],
+    job_of: Callable[[float, RopeTask], tuple],
+    episode: Callable[[tuple], dict],
+    workers: int,
+) -> int:
+    """Greedy with a score bonus at each weight (0 first: greedy as it is), on the validation
+    starts or a level's test tasks, resumable; summary.json records the starts, the model and
+    ``identity`` (what else decides the episodes) and refuses a folder made with others.
+    Prints the paired table; 1 if any episode errored (no table: not a result)."""
+    print(machine_line())
+    task = get_task(task_name)
+    if test:
+        starts = task.files.load_task_set(level, "test")
+        starts = type(starts)(list(starts)[:n_starts], starts.metadata)
+    else:
+        starts, _ = validation_starts(task_name, level, n_starts, workers)
+    model_hash = QModel.load(model).content_hash()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta_path = out_dir / "summary.json"
+    recorded = {"starts_hash": starts.content_hash(), "model_hash": model_hash, **identity}
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if any(old.get(k) != v for k, v in recorded.items()):
+            names = ", ".join(k.removesuffix("_hash") for k in recorded)
+            raise SystemExit(f"{out_dir}: made with other {names}; use another dir")
+    lines = play_resumable(
+        out_dir / "outcomes.jsonl", weights, starts, "lam", job_of, episode, workers
+    )
+    results = {f"{w:g}": r for w, r in summarise(lines, weights, key="lam").items()}
+    errored = [ln for ln in lines if ln.get("error")]
+    meta = {
+        "task": task_name,
+        "level": level,
+        "split": "test" if test else "validation",
+        "starts": len(starts),
+        "model": str(model),
+        **recorded,
+        "machine": machine_info(),
+        "errored_episodes": len(errored),
+        "results": results,
+    }
+    meta_path.write_text(json.dumps(meta, indent=1, sort_keys=True))
+    if errored:  # a run in which episodes errored is not a result
+        print(f"{len(errored)} episodes errored: no table", file=sys.stderr)
+        return 1
+    split = "test tasks" if test else "validation starts"
+    print(f"{task_name}, {level} level, {len(starts)} {split}, model {model_hash}")
+    print_paired_table(results, "prior weight")
+    return 0
+
+
 def print_paired_table(results: dict, arm: str) -> None:
     """The Markdown table of ``summarise``'s results, one row an arm."""
     print(f"| {arm} | greedy success | Wilson 95 % | vs first: wins / losses | sign test p |")

@@ -47,12 +47,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from demo_prior import advance_rates  # noqa: E402
-from greedy_validation import (  # noqa: E402
-    play_resumable,
-    print_paired_table,
-    summarise,
-    validation_starts,
-)
+from greedy_validation import play_weight_arms  # noqa: E402
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
 from knotlab.core.machine import machine_info, machine_line  # noqa: E402
@@ -331,84 +326,24 @@ def _episode(job: tuple) -> dict:
 
 def cmd_play(args: argparse.Namespace) -> int:
     """Play every lam on the validation starts (or the test tasks), print the paired table."""
-    print(machine_line())
-    lams = [float(x) for x in args.lams.split(",")]
     for p in [args.model, args.scans, *map(Path, args.tries.split(","))]:
         if not p.exists():
             raise SystemExit(f"{p} does not exist")
-    task = get_task(args.task)
-    library_path = str(task.files.library_path)
-    if args.test:
-        starts = task.files.load_task_set(args.level, "test")
-        starts = type(starts)(list(starts)[: args.starts], starts.metadata)
-    else:
-        starts, _ = validation_starts(args.task, args.level, args.starts, args.workers)
-    model_hash = QModel.load(args.model).content_hash()
-    out = args.out_dir
-    out.mkdir(parents=True, exist_ok=True)
-    meta_path = out / "summary.json"
-    key = (starts.content_hash(), model_hash, args.tries, str(args.scans), args.k)
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        recorded = (
-            old.get("starts_hash"),
-            old.get("model_hash"),
-            old.get("tries"),
-            old.get("scans"),
-            old.get("k"),
-        )
-        if recorded != key:
-            raise SystemExit(
-                f"{out}: made with other starts, model, tries, scans or k; use another dir"
-            )
-    lines = play_resumable(
-        out / "outcomes.jsonl",
-        lams,
-        starts,
-        "lam",
-        lambda a, s: (
-            args.task,
-            library_path,
-            str(args.model),
-            str(args.scans),
-            args.tries,
-            args.k,
-            a,
-            s,
-        ),
-        _episode,
-        args.workers,
+    library_path = str(get_task(args.task).files.library_path)
+    scans, tries, k, model = str(args.scans), args.tries, args.k, str(args.model)
+    return play_weight_arms(
+        task_name=args.task,
+        level=args.level,
+        n_starts=args.starts,
+        test=args.test,
+        model=args.model,
+        out_dir=args.out_dir,
+        weights=[float(x) for x in args.lams.split(",")],
+        identity={"tries": tries, "scans": scans, "k": k},
+        job_of=lambda a, s: (args.task, library_path, model, scans, tries, k, a, s),
+        episode=_episode,
+        workers=args.workers,
     )
-    results = {f"{lam:g}": r for lam, r in summarise(lines, lams, key="lam").items()}
-    errored = [ln for ln in lines if ln.get("error")]
-    meta_path.write_text(
-        json.dumps(
-            {
-                "task": args.task,
-                "level": args.level,
-                "split": "test" if args.test else "validation",
-                "starts": len(starts),
-                "starts_hash": key[0],
-                "model": str(args.model),
-                "model_hash": model_hash,
-                "tries": args.tries,
-                "scans": str(args.scans),
-                "k": args.k,
-                "machine": machine_info(),
-                "errored_episodes": len(errored),
-                "results": results,
-            },
-            indent=1,
-            sort_keys=True,
-        )
-    )
-    if errored:  # a run in which episodes errored is not a result
-        print(f"{len(errored)} episodes errored: no table", file=sys.stderr)
-        return 1
-    split = "test tasks" if args.test else "validation starts"
-    print(f"{args.task}, {args.level} level, {len(starts)} {split}, model {model_hash}, k {args.k}")
-    print_paired_table(results, "prior weight")
-    return 0
 
 
 def main() -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -482,3 +483,27 @@ def test_tried_neighbours_prior_counts_the_nearest_tried_states_and_shifts_greed
     assert shifted.action == 0 and np.isneginf(shifted.scores_a[2])
     ctx_b = SimpleNamespace(scan=SimpleNamespace(nn_cost_a=np.array(near_b)))
     assert tn.NeighbourPriorPolicy(Inner(), ts, 2, 1.0).choose(ctx_b).action == 1
+
+
+def test_prior_weight_arms_play_resumably_and_refuse_a_folder_made_with_other_tries(
+    project_root, tmp_path, monkeypatch, capsys
+) -> None:
+    dp = load_bench_module(project_root, "demo_prior")
+    model = project_root / "results/search_labels/model_search-both+dagger-both+floor.npz"
+    tries = project_root / "results/tries_main.jsonl"
+    out = tmp_path / "arms"
+    argv = ["demo_prior.py", "--starts", "1", "--lams", "0", "--workers", "1"]
+    argv += ["--model", str(model), "--out-dir", str(out)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--tries", str(tries)])
+    assert dp.main() == 0  # one real greedy episode on the first validation start
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["tries"] == str(tries) and summary["errored_episodes"] == 0
+    assert summary["results"]["0"]["starts"] == 1 and summary["split"] == "validation"
+    line = json.loads((out / "outcomes.jsonl").read_text())
+    assert line["task_id"] == "main-val-0000" and line["lam"] == 0.0
+    assert dp.main() == 0  # resumed: nothing played again
+    assert len((out / "outcomes.jsonl").read_text().splitlines()) == 1
+    other = project_root / "results/tries_hard.jsonl"
+    monkeypatch.setattr(sys, "argv", [*argv, "--tries", str(other)])
+    with pytest.raises(SystemExit, match="made with other starts, model, tries; use another dir"):
+        dp.main()
