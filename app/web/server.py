@@ -19,6 +19,7 @@ import viser
 from knotlab.app.web.access import AccessGate
 from knotlab.app.web.icons import warm_icon_cache_in_background
 from knotlab.app.web.jobs import ReportKind, RetrainJob, RetrainOutcome, RetrainReport
+from knotlab.app.web.prop_hints import cache_prop_hints_per_class
 from knotlab.app.web.resources import (
     AppResources,
     RankingModel,
@@ -105,6 +106,7 @@ class LabelApp:
         self._suggest_cancel = threading.Event()
         self._suggest_fraction = 0.0
         self._tabs_lock = threading.Lock()
+        cache_prop_hints_per_class()  # ~0.3 ms off each of a new state's 40-60 handles
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when quiet
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
