@@ -13,7 +13,7 @@ import numpy as np
 
 from knotlab.core.registration.params import COST_NAMES, RegistrationCosts, RegistrationParams
 from knotlab.core.registration.sides import CloudSide
-from knotlab.core.registration.tps import ThinPlateSpline
+from knotlab.core.registration.tps import ThinPlateSpline, tps_kernel
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +66,21 @@ class ScanResult:
         basis = self._demo.basis(a)
         spline = basis.spline(self.e_f_ak3[a, : basis.n_coef])
         return spline.compose_affine(s, self._demo.centre_a3[a], self._scene.centre_a3[0])
+
+    def f_points(self, a: int, x_m3: np.ndarray) -> np.ndarray:
+        """f_a(x) for world points x (m, 3): `f(a).evaluate(x)` bit for bit, without building
+        and checking the spline (the features warp a few points through every demo's f_a)."""
+        s = self.params.scale_m
+        side = self._demo
+        n = int(side.n_a[a])
+        k = n + 4
+        # the same arithmetic, in the same order, as TpsBasis.spline, compose_affine, evaluate
+        theta = side.theta_apk[a, : 4 + n, :k] @ self.e_f_ak3[a, :k]
+        b_33, w_n3 = theta[1:4].copy(), theta[4:].copy()
+        off_in = side.centre_a3[a]
+        centres = side.x_an3[a, :n] * s + off_in
+        t_3 = s * theta[0] + self._scene.centre_a3[0] - off_in @ b_33
+        return x_m3 @ b_33 + t_3 + tps_kernel(x_m3, centres) @ w_n3
 
     def g(self, a: int) -> ThinPlateSpline:
         """g_a: scene -> demo a's cloud, world coordinates."""

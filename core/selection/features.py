@@ -309,7 +309,7 @@ class LibraryFeaturizer:
         out = []
         for a, pts in enumerate(points):
             if scan.ok_a[a]:
-                out.append(scan.f(a).evaluate(pts))
+                out.append(scan.f_points(a, pts))
             else:
                 out.append(np.full_like(pts, np.nan))
         return out
@@ -340,9 +340,14 @@ class LibraryFeaturizer:
         ok = np.asarray(scan.ok_a, dtype=bool)
         tree = cKDTree(np.asarray(cloud_n3, dtype=float))
         grasp = np.full(self.n_actions, np.nan)
-        for a, pts in enumerate(self.warped_points(scan, self._grasp_pts)):
-            if ok[a]:
-                grasp[a] = tree.query(pts)[0].max()
+        usable = np.flatnonzero(ok)
+        if usable.size:
+            # one query for every demo's warped points: each point's distance is its own
+            warped = self.warped_points(scan, self._grasp_pts)
+            dist = tree.query(np.concatenate([warped[a] for a in usable]))[0]
+            ends = np.cumsum([len(warped[a]) for a in usable])
+            for a, part in zip(usable, np.split(dist, ends[:-1]), strict=True):
+                grasp[a] = part.max()
         costs = np.column_stack([scan.cost(name) for name in SUMMARY_COSTS])
         return ScanSummary(costs.astype(float), ok, grasp)
 

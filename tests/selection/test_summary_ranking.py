@@ -74,3 +74,21 @@ def test_nothing_is_taken_from_summaries_of_another_cpu_kind_library_or_cloud(sh
     other_library._items = dict(cache._items)
     assert summary_scan(other_library, featurizer, model, cloud, 5) is None
     assert summary is cache.get(cloud)
+
+
+def test_the_grasp_distances_warp_and_query_as_each_demos_own_spline_bit_for_bit(shipped) -> None:
+    from scipy.spatial import cKDTree
+
+    library, _, featurizer = shipped
+    for i in (3, 40, 97):
+        cloud = _cloud(library, i)
+        scan = featurizer.scan(cloud)
+        tree = cKDTree(cloud)
+        expected = np.full(len(library), np.nan)
+        for a in np.flatnonzero(scan.ok_a):
+            for pts in (featurizer._grasp_pts[a], featurizer._margin_pts[a]):
+                # the fast path is the spline's own evaluation, to the last bit
+                assert np.array_equal(scan.f_points(a, pts), scan.f(a).evaluate(pts))
+            expected[a] = tree.query(scan.f(a).evaluate(featurizer._grasp_pts[a]))[0].max()
+        # one query over every demo's points: each point's distance is the one it gets alone
+        assert np.array_equal(featurizer.summarise(scan, cloud).grasp_a, expected, equal_nan=True)
