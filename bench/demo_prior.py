@@ -120,22 +120,13 @@ def main() -> int:
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
-    for p in [args.model, *map(Path, args.tries.split(","))]:
-        if not p.exists():
-            raise SystemExit(f"{p} does not exist")
     library_path = str(get_task(args.task).files.library_path)
     return play_weight_arms(
-        task_name=args.task,
-        level=args.level,
-        n_starts=args.starts,
-        test=args.test,
-        model=args.model,
-        out_dir=args.out_dir,
-        weights=[float(x) for x in args.lams.split(",")],
+        args,
+        inputs=[args.model, *map(Path, args.tries.split(","))],
         identity={"tries": args.tries},
         job_of=lambda a, s: (args.task, library_path, str(args.model), args.tries, a, s),
         episode=_episode,
-        workers=args.workers,
     )
 
 

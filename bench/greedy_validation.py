@@ -243,23 +243,24 @@ def play_resumable(
 
 
 def play_weight_arms(
+    args: argparse.Namespace,
     *,
-    task_name: str,
-    level: str,
-    n_starts: int,
-    test: bool,
-    model: Path,
-    out_dir: Path,
-    weights: list[float],
+    inputs: list[Path],
     identity: dict[str, Any],
     job_of: Callable[[float, RopeTask], tuple],
     episode: Callable[[tuple], dict],
-    workers: int,
 ) -> int:
     """Greedy with a score bonus at each weight (0 first: greedy as it is), on the validation
     starts or a level's test tasks, resumable; summary.json records the starts, the model and
     ``identity`` (what else decides the episodes) and refuses a folder made with others.
-    Prints the paired table; 1 if any episode errored (no table: not a result)."""
+    ``args``: task, level, starts, test, model, lams, out_dir, workers; ``inputs``: files that
+    must exist. Prints the paired table; 1 if any episode errored (no table: not a result)."""
+    for path in inputs:
+        if not path.exists():
+            raise SystemExit(f"{path} does not exist")
+    task_name, level, n_starts, test = args.task, args.level, args.starts, args.test
+    model, out_dir, workers = args.model, args.out_dir, args.workers
+    weights = [float(x) for x in args.lams.split(",")]
     print(machine_line())
     task = get_task(task_name)
     if test:

@@ -326,23 +326,14 @@ def _episode(job: tuple) -> dict:
 
 def cmd_play(args: argparse.Namespace) -> int:
     """Play every lam on the validation starts (or the test tasks), print the paired table."""
-    for p in [args.model, args.scans, *map(Path, args.tries.split(","))]:
-        if not p.exists():
-            raise SystemExit(f"{p} does not exist")
     library_path = str(get_task(args.task).files.library_path)
     scans, tries, k, model = str(args.scans), args.tries, args.k, str(args.model)
     return play_weight_arms(
-        task_name=args.task,
-        level=args.level,
-        n_starts=args.starts,
-        test=args.test,
-        model=args.model,
-        out_dir=args.out_dir,
-        weights=[float(x) for x in args.lams.split(",")],
+        args,
+        inputs=[args.model, args.scans, *map(Path, args.tries.split(","))],
         identity={"tries": tries, "scans": scans, "k": k},
         job_of=lambda a, s: (args.task, library_path, model, scans, tries, k, a, s),
         episode=_episode,
-        workers=args.workers,
     )
 
 
