@@ -146,6 +146,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from knotlab.core.selection.features import LibraryFeaturizer
     from knotlab.labeling_db.interchange import read_labels
 
+    print(machine_line())
     if args.out.exists() and not args.force:
         raise SystemExit(f"{args.out} exists (written by an earlier scan); --force to replace it")
     task = get_task(args.task)
