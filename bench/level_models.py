@@ -10,12 +10,16 @@ settings (C = 1000, D = 10, landmarks 50 + 20, the tried candidates):
 - ``hard``: the hard level's training part,
 - ``both``: both training parts together,
 - ``both+policy``: both, plus the main level's round-1 policy states (the oracle's labels of the
-  states greedy reached from the main training starts, `bench/policy_states.py`, with their own
-  tried candidates): every label made so far that no held-out start contributed to.
+  states greedy reached from the main training starts, with their own tried candidates; the
+  states reached from a held-out start are left out): every label made so far that no held-out
+  start contributed to. The overhand knot's come from `bench/policy_states.py`
+  (results/policy_states_main/), another task's from `knotlab label --oracle --from-policy
+  greedy` exported to results/<task>/policy_states/round1.jsonl and tried by `knotlab labels
+  tries` into tries_round1.jsonl there.
 
 ``--task`` fits another registered task's models the same way, from its own files under
 ``results/<task>/`` (labels_oracle_<level>.jsonl, tries_<level>.jsonl) with its shipped model's C
-and D; ``both+policy`` needs policy-state labels, which only the overhand knot has.
+and D; ``both+policy`` is fitted where the task's policy-state labels exist.
 
 Every model is scored on each level's held-out starts: greedy's success (episodes in
 simulation, Wilson 95 % intervals) and top-1 / V-AUC on the held-out executions' labelled states.
@@ -24,7 +28,8 @@ the higher greedy success on that level's held-out starts (ties: higher top-1); 
 both levels when it is chosen on both.
 
 Outputs in --out-dir (resumable: a fitted model and its scores are read back): model_<name>.npz,
-levels.json (models, scores, machine, wall times), levels.png. Same seed, same files.
+levels.json (each model with its scores, wall time and the machine that scored it),
+levels.png. Same seed, same files.
 
 Usage: .venv/bin/python bench/level_models.py --out-dir results/level_models [--workers 2]
        .venv/bin/python bench/level_models.py --task figure8 --out-dir results/figure8/level_models
@@ -41,6 +46,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Collection, Iterable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -71,13 +77,19 @@ MODELS = {
     "both": ("main", "hard"),
     "both+policy": ("main", "hard", "policy"),
 }
-POLICY_STATES = ROOT / "results/policy_states_main"  # round1.jsonl and tries_round1.jsonl
 
 
 def results_dir(task_name: str) -> Path:
     """Where a task's labels and tries are (scripts/table1.sh's layout): the overhand knot's in
     results/, every other task's in results/<task>/."""
     return ROOT / "results" if task_name == "overhand" else ROOT / "results" / task_name
+
+
+def policy_states_dir(task_name: str) -> Path:
+    """Where a task's round-1 policy-state labels are (round1.jsonl, tries_round1.jsonl)."""
+    if task_name == "overhand":
+        return ROOT / "results/policy_states_main"
+    return results_dir(task_name) / "policy_states"
 
 
 @dataclass(frozen=True)
@@ -88,6 +100,15 @@ class LevelSplit:
     train: tuple[LabelledExecution, ...]
     held_out: tuple[LabelledExecution, ...]
     held_out_starts: tuple[RopeTask, ...]
+
+
+def reached_from_training(
+    executions: Iterable[LabelledExecution], held_tasks: Collection[str]
+) -> tuple[LabelledExecution, ...]:
+    """The policy-state executions whose first state greedy reached from a training start."""
+    return tuple(
+        e for e in executions if e.metadata["reached_by"]["start_task_id"] not in held_tasks
+    )
 
 
 def level_split(task, level: str, labels: Path) -> LevelSplit:
@@ -133,20 +154,23 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "levels.json"
     report = json.loads(path.read_text()) if path.exists() else {"models": {}}
+    for rec in report["models"].values():  # files from before models had a machine each
+        rec.setdefault("machine", report.get("machine"))
+    report.pop("machine", None)
     splits = {lv: level_split(task, lv, files / f"labels_oracle_{lv}.jsonl") for lv in LEVELS}
     tries: dict = {}
     for lv in LEVELS:
         tries.update(read_tries(files / f"tries_{lv}.jsonl"))
     models = dict(MODELS)
+    held_tasks = {e.task_id for s in splits.values() for e in s.held_out}
     policy: tuple[LabelledExecution, ...] = ()
-    if args.task == "overhand":
-        tries.update(read_tries(POLICY_STATES / "tries_round1.jsonl"))
-        # Round 1 rolled greedy out from the main level's training part only: no held-out start.
-        policy = tuple(_read(POLICY_STATES / "round1.jsonl"))
+    policy_dir = policy_states_dir(args.task)
+    if (policy_dir / "round1.jsonl").exists():
+        tries.update(read_tries(policy_dir / "tries_round1.jsonl"))
+        # A state greedy reached from a held-out start would leak that start into training.
+        policy = reached_from_training(_read(policy_dir / "round1.jsonl"), held_tasks)
     else:
         del models["both+policy"]
-    held_tasks = {e.task_id for s in splits.values() for e in s.held_out}
-    assert not any(e.metadata["reached_by"]["start_task_id"] in held_tasks for e in policy)
     held_ids = frozenset(e.execution_id for s in splits.values() for e in s.held_out)
     for name, levels in models.items():
         rec = report["models"].get(name, {})
@@ -178,9 +202,10 @@ def main() -> int:
                     **held_out_ranking(model_path, s, library),
                 }
             rec["wall_s"] = round(time.perf_counter() - t0, 1)
+            # Where this model's scores were computed: a resume may add a model on another
+            # machine, whose last bits (and so some episodes) differ from the others'.
+            rec["machine"] = machine_info()
             report["models"][name] = rec
-            report["machine"] = machine_info()  # where the scores were computed (a resume
-            # that fits nothing leaves the stored machine as it is)
             path.write_text(json.dumps(report, indent=1, sort_keys=True))
         print(f"{name}: {json.dumps(rec['scores'])}", flush=True)
     report["task"] = args.task
@@ -237,9 +262,9 @@ def _table(report: dict) -> None:
     print(
         "| model | training states | "
         + " | ".join(f"{lv} greedy | {lv} top-1 | {lv} V-AUC" for lv in LEVELS)
-        + " |"
+        + " | scored on |"
     )
-    print("|---|---|" + "---|" * (3 * len(LEVELS)))
+    print("|---|---|" + "---|" * (3 * len(LEVELS) + 1))
     for name in [n for n in MODELS if n in report["models"]]:
         rec = report["models"][name]
         cells = []
@@ -247,7 +272,8 @@ def _table(report: dict) -> None:
             sc = rec["scores"][lv]
             k, n = round(sc["greedy_success"] * sc["starts"]), sc["starts"]
             cells += [f"{k}/{n} = {k / n:.3f}", f"{sc['top1']:.3f}", f"{sc['value_auc']:.3f}"]
-        print(f"| {name} | {rec['train_states']} | " + " | ".join(cells) + " |")
+        kind = (rec.get("machine") or {}).get("vector_width", "?")
+        print(f"| {name} | {rec['train_states']} | " + " | ".join(cells) + f" | {kind} |")
     print(f"chosen on validation: {report['chosen']}")
 
 

@@ -88,9 +88,11 @@ fi
 # resumable, the committed models and scores are read back; it chose the hard level's model for
 # both). Needs both levels' labels and tries (`STOP=labels scripts/table1.sh hard`) and the
 # policy states (`bench/policy_states.py --rounds 2 --out-dir results/policy_states_main`).
-# Another task's level study is its own (results/TASK/level_models/, without policy states:
-# `MODEL=levels scripts/table1.sh --task figure8` after both levels' labels; the figure-eight's
-# chose both levels' labels for main and the hard level's for hard).
+# Another task's level study is its own (results/TASK/level_models/, with policy states where
+# results/TASK/policy_states/round1.jsonl exists: `MODEL=levels scripts/table1.sh --task
+# figure8` after both levels' labels; the figure-eight's chose both levels' labels for main and,
+# since its main policy states were added, both + policy states for hard; its committed hard
+# test run used the hard level's model, the choice before them).
 # `own` (another task's default): the model of step 2, results/model_LEVEL.npz (the overhand
 # knot's previous Table I, now in results/archive/table1_model_731a_*). MODEL=FILE: that file.
 # A results folder refuses another model's outcomes: to bench another model, move the committed

@@ -137,7 +137,11 @@ def test_level_models_choose_per_level_by_held_out_greedy_then_top1(
     models = {
         "main": {"scores": _scores(0.75, 0.40), "train_states": 695},
         "hard": {"scores": _scores(0.60, 0.55), "train_states": 800},
-        "both": {"scores": _scores(0.75, 0.55, top1=0.6), "train_states": 1495},
+        "both": {
+            "scores": _scores(0.75, 0.55, top1=0.6),
+            "train_states": 1495,
+            "machine": {"vector_width": "avx2"},  # a model added on another machine says so
+        },
     }
     assert level_models.choose(models, "main") == "both"  # a tie on success: top-1 decides
     assert level_models.choose(models, "hard") == "both"
@@ -147,11 +151,27 @@ def test_level_models_choose_per_level_by_held_out_greedy_then_top1(
     level_models._table(report)
     text = capsys.readouterr().out
     assert "| both | 1495 | 45/60 = 0.750 | 0.600 | 0.900 | 33/60 = 0.550 |" in text
+    assert "| 0.900 | avx2 |" in text and "| ? |" in text
     level_models._plot(report, tmp_path / "levels.png")
     assert (tmp_path / "levels.png").stat().st_size > 1000
     # Each task's labels where scripts/table1.sh writes them.
     assert level_models.results_dir("overhand") == project_root / "results"
     assert level_models.results_dir("figure8") == project_root / "results" / "figure8"
+    assert level_models.policy_states_dir("overhand") == project_root / "results/policy_states_main"
+    assert (
+        level_models.policy_states_dir("figure8") == project_root / "results/figure8/policy_states"
+    )
+
+
+def test_level_models_drop_policy_states_reached_from_a_held_out_start(project_root) -> None:
+    level_models = load_bench_module(project_root, "level_models")
+
+    def reached(start: str) -> SimpleNamespace:
+        return SimpleNamespace(metadata={"reached_by": {"start_task_id": start}})
+
+    states = [reached("main-train-0001"), reached("main-train-0002"), reached("main-train-0001")]
+    kept = level_models.reached_from_training(states, {"main-train-0001"})
+    assert [s.metadata["reached_by"]["start_task_id"] for s in kept] == ["main-train-0002"]
 
 
 def test_policy_states_plot_and_table_show_rounds_refitted_with_their_tries(
