@@ -527,3 +527,27 @@ def test_prior_weight_arms_play_resumably_and_refuse_a_folder_made_with_other_tr
     monkeypatch.setattr(sys, "argv", [*argv, "--tries", str(other)])
     with pytest.raises(SystemExit, match="made with other starts, model, tries; use another dir"):
         dp.main()
+
+
+def test_greedy_committee_counts_members_equally_and_keeps_unusable_demos_out(
+    project_root, tmp_path
+) -> None:
+    gc = load_bench_module(project_root, "greedy_committee")
+    inf = np.inf
+    # Member 1 prefers demo 0 by a hair on a large Q scale, member 2 demo 1 by far on a small
+    # one: standardised, member 2's clear preference wins; demo 3 is unusable for everyone.
+    scores_ma = np.array([[100.0, 99.9, 0.0, -inf], [0.0, 1.0, 0.0, -inf]])
+    z = gc.combine_scores(scores_ma, "z")
+    assert int(np.argmax(z)) == 1 and np.isneginf(z[3])
+    borda = gc.combine_scores(scores_ma, "borda")
+    # ranks: member 1 -> 0, 1, 2; member 2 -> 1, then the tie 0, 2 in index order
+    assert borda.tolist()[:3] == [-1.0, -1.0, -4.0] and np.isneginf(borda[3])
+    # a demo one member cannot score is unusable for the committee
+    assert np.isneginf(gc.combine_scores(np.array([[1.0, 2.0], [1.0, -inf]]), "z")[1])
+    model = tmp_path / "m.npz"
+    model.write_bytes(b"")
+    arm = gc.parse_arm(f"z2=z:{model},{model}")
+    assert arm.combine == "z" and len(arm.model_paths) == 2
+    for bad in ("nameonly", f"x=mean:{model}", "x=z:/no/such/model.npz"):
+        with pytest.raises(SystemExit):
+            gc.parse_arm(bad)
