@@ -31,6 +31,9 @@ Outputs in --out-dir (resumable: a fitted model and its scores are read back): m
 levels.json (each model with its scores, wall time and the machine that scored it),
 levels.png. Same seed, same files.
 
+``--models NAME,...`` fits only those; ``--C X`` fits them with another slack weight, named
+``NAME-CX`` (give them their own --out-dir: the choice rule reads every model in levels.json).
+
 Usage: .venv/bin/python bench/level_models.py --out-dir results/level_models [--workers 2]
        .venv/bin/python bench/level_models.py --task figure8 --out-dir results/figure8/level_models
 """
@@ -143,11 +146,18 @@ def main() -> int:
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--task", default="overhand")
+    ap.add_argument("--models", default=None, help="NAME,NAME,... (default: every model)")
+    ap.add_argument(
+        "--C", type=float, default=None, help="slack weight (default: the shipped model's)"
+    )
     args = ap.parse_args()
     task = get_task(args.task)
     files = results_dir(args.task)
     shipped = QModel.load(task.files.model_path).hyperparameters
-    C, D = float(shipped["C"]), float(shipped["D"])
+    D = float(shipped["D"])
+    C = float(shipped["C"]) if args.C is None else args.C
+    # Another slack weight than the committed one names its models "<name>-C<value>".
+    suffix = "" if float(shipped["C"]) == C else f"-C{C:g}"
     library_path = task.files.library_path
     library = DemoLibrary.load(library_path)
     out = args.out_dir
@@ -171,6 +181,12 @@ def main() -> int:
         policy = reached_from_training(_read(policy_dir / "round1.jsonl"), held_tasks)
     else:
         del models["both+policy"]
+    if args.models is not None:
+        unknown = sorted(set(args.models.split(",")) - set(models))
+        if unknown:
+            raise SystemExit(f"--models: unknown {', '.join(unknown)}; known: {', '.join(models)}")
+        models = {n: models[n] for n in args.models.split(",")}
+    models = {name + suffix: levels for name, levels in models.items()}
     held_ids = frozenset(e.execution_id for s in splits.values() for e in s.held_out)
     for name, levels in models.items():
         rec = report["models"].get(name, {})
@@ -189,6 +205,8 @@ def main() -> int:
                 "model_hash": QModel.load(model_path).content_hash(),
                 "train_executions": len(executions),
                 "train_states": sum(len(e.steps) for e in executions),
+                "C": C,
+                "D": D,
                 "scores": {},
             }
             for lv in LEVELS:
@@ -227,6 +245,11 @@ def choose(models: dict, level: str) -> str:
     )
 
 
+def _ordered(models: dict) -> list[str]:
+    """The models in the fixed order (then any other slack weight's), not the file's sorted one."""
+    return [n for n in MODELS if n in models] + sorted(set(models) - set(MODELS))
+
+
 def _plot(report: dict, path: Path) -> None:
     import matplotlib
 
@@ -234,7 +257,7 @@ def _plot(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     models = report["models"]
-    names = [n for n in MODELS if n in models]  # the fixed order, not the file's sorted one
+    names = _ordered(models)
     fig, ax = plt.subplots(figsize=(8, 4))
     width = 0.8 / len(names)
     for i, name in enumerate(names):
@@ -265,7 +288,7 @@ def _table(report: dict) -> None:
         + " | scored on |"
     )
     print("|---|---|" + "---|" * (3 * len(LEVELS) + 1))
-    for name in [n for n in MODELS if n in report["models"]]:
+    for name in _ordered(report["models"]):
         rec = report["models"][name]
         cells = []
         for lv in LEVELS:

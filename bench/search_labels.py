@@ -17,6 +17,7 @@ Subcommands (resumable, same seeds, same files):
   starts    the training starts outside the held-out fifth as a task-set file
             (<out>/starts_<level>.npz), for `knotlab label --task-set`
   fit       models from them, scored on held-out starts -> <out>/search.json, models, table
+            (--arms A,B fits only those; --C X another slack weight, as arms named A-CX)
 
 A second step (DAgger with the search as the expert): `knotlab label --search la2x5 --from-policy
 greedy --policy-model <out>/model_search-both+floor.npz --task-set <out>/starts_main.npz
@@ -302,7 +303,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
     task = get_task(args.task)
     files = results_dir(args.task)
     shipped = QModel.load(task.files.model_path).hyperparameters
-    C, D = float(shipped["C"]), float(shipped["D"])
+    D = float(shipped["D"])
+    C = float(shipped["C"]) if args.C is None else args.C
+    # Another slack weight than the committed one is its own arm: "<arm>-C<value>".
+    suffix = "" if float(shipped["C"]) == C else f"-C{C:g}"
+    wanted = list(ARMS) if args.arms is None else args.arms.split(",")
+    unknown = sorted(set(wanted) - set(ARMS))
+    if unknown:
+        raise SystemExit(f"--arms: unknown arm(s) {', '.join(unknown)}; known: {', '.join(ARMS)}")
     library_path = task.files.library_path
     library = DemoLibrary.load(library_path)
     out = args.out_dir
@@ -329,7 +337,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             starts = {e.metadata["reached_by"]["start_task_id"] for e in executions}
             assert not starts & held_tasks, f"policy states from held-out starts: {part}"
     oracle_tries = read_tries(files / "tries_hard.jsonl")
-    for name, arm in ARMS.items():
+    for arm_name in wanted:
+        arm, name = ARMS[arm_name], arm_name + suffix
         rec = report["models"].get(name, {})
         model_path = out / f"model_{name}.npz"
         if model_path.exists() and rec.get("scores", {}).keys() >= set(LEVELS):
@@ -351,6 +360,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         fit(executions, library, held_ids, tries, model_path, args.workers, C=C, D=D)
         rec = {
             "parts": list(arm),
+            "C": C,
+            "D": D,
             "model": str(model_path),
             "model_hash": QModel.load(model_path).content_hash(),
             "train_executions": len(executions),
@@ -414,6 +425,10 @@ if __name__ == "__main__":
     f.add_argument("--out-dir", type=Path, required=True)
     f.add_argument("--task", default="overhand")
     f.add_argument("--workers", type=int, default=2)
+    f.add_argument("--arms", default=None, help="ARM,ARM,... (default: every arm)")
+    f.add_argument(
+        "--C", type=float, default=None, help="slack weight (default: the shipped model's)"
+    )
     f.set_defaults(func=cmd_fit)
     args = ap.parse_args()
     raise SystemExit(args.func(args))
