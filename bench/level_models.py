@@ -155,9 +155,7 @@ def main() -> int:
     files = results_dir(args.task)
     shipped = QModel.load(task.files.model_path).hyperparameters
     D = float(shipped["D"])
-    C = float(shipped["C"]) if args.C is None else args.C
-    # Another slack weight than the committed one names its models "<name>-C<value>".
-    suffix = "" if float(shipped["C"]) == C else f"-C{C:g}"
+    C, suffix = slack_weight(shipped, args.C)
     library_path = task.files.library_path
     library = DemoLibrary.load(library_path)
     out = args.out_dir
@@ -243,6 +241,13 @@ def choose(models: dict, level: str) -> str:
             models[n]["scores"][level]["top1"],
         ),
     )
+
+
+def slack_weight(shipped: dict, requested: float | None) -> tuple[float, str]:
+    """The slack weight C to fit with (default: the shipped model's) and the suffix its models'
+    names take: "" for the shipped C, else "-C<value>" (another C is another model)."""
+    C = float(shipped["C"]) if requested is None else float(requested)
+    return C, "" if float(shipped["C"]) == C else f"-C{C:g}"
 
 
 def _ordered(models: dict) -> list[str]:

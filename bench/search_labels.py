@@ -49,7 +49,13 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from level_models import LEVELS, held_out_ranking, level_split, results_dir  # noqa: E402
+from level_models import (  # noqa: E402
+    LEVELS,
+    held_out_ranking,
+    level_split,
+    results_dir,
+    slack_weight,
+)
 from policy_states import fit, greedy_success  # noqa: E402
 
 from knotlab.core.demos.library import DemoLibrary  # noqa: E402
@@ -304,9 +310,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     files = results_dir(args.task)
     shipped = QModel.load(task.files.model_path).hyperparameters
     D = float(shipped["D"])
-    C = float(shipped["C"]) if args.C is None else args.C
-    # Another slack weight than the committed one is its own arm: "<arm>-C<value>".
-    suffix = "" if float(shipped["C"]) == C else f"-C{C:g}"
+    C, suffix = slack_weight(shipped, args.C)  # another C is its own arm: "<arm>-C<value>"
     wanted = list(ARMS) if args.arms is None else args.arms.split(",")
     unknown = sorted(set(wanted) - set(ARMS))
     if unknown:

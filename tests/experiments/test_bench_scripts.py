@@ -551,3 +551,13 @@ def test_greedy_committee_counts_members_equally_and_keeps_unusable_demos_out(
     for bad in ("nameonly", f"x=mean:{model}", "x=z:/no/such/model.npz"):
         with pytest.raises(SystemExit):
             gc.parse_arm(bad)
+
+
+def test_another_slack_weight_names_its_own_models_and_sorts_after_the_fixed_ones(
+    project_root,
+) -> None:
+    lm = load_bench_module(project_root, "level_models")
+    assert lm.slack_weight({"C": 1000.0}, None) == (1000.0, "")
+    assert lm.slack_weight({"C": 1000.0}, 1000) == (1000.0, "")
+    assert lm.slack_weight({"C": 1000.0}, 3000.0) == (3000.0, "-C3000")
+    assert lm._ordered({"both-C3000": 0, "hard": 0, "main": 0}) == ["main", "hard", "both-C3000"]
