@@ -330,8 +330,7 @@ class LabelPanels:
 
         @start.on_click
         def _(_e: object) -> None:
-            if not submit():
-                self._ask_for_a_name()
+            self._submit_typed_name()
 
         @form.on_submit
         def _(_e: object) -> None:
@@ -342,15 +341,24 @@ class LabelPanels:
 
     def _enter(self) -> None:
         """Enter: submit the name prompt while it is open, else try the selected candidate."""
-        submit = self._submit_name
-        if submit is None:
+        if self._submit_name is None:
             self._try()
             return
-        # The field's last keystrokes may reach the server just after the Enter key does.
+        self._submit_typed_name()
+
+    def _submit_typed_name(self) -> None:
+        """Submit the open name prompt, waiting up to a second for the field's last edit."""
+        submit = self._submit_name
+        if submit is None:
+            return
+        # The field's last keystrokes may reach the server just after the Enter key or the
+        # click does: viser sends field edits at most every 50 ms.
         deadline = time.monotonic() + 1.0
-        while not submit() and self._submit_name is not None and time.monotonic() < deadline:
+        while not submit() and self._submit_name is submit and time.monotonic() < deadline:
             time.sleep(0.05)
-        if self._submit_name is not None:  # still open: the field is empty
+        # The same prompt still open: its field is empty. (A refused name opens a new prompt
+        # with its own reason, which this must not overwrite.)
+        if self._submit_name is submit:
             self._ask_for_a_name()
 
     def _ask_for_a_name(self) -> None:

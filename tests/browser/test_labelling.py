@@ -490,6 +490,22 @@ def test_the_name_prompt_says_why_an_empty_or_reserved_name_does_not_start(brows
         context.close()
 
 
+def test_a_click_right_after_the_name_is_typed_starts_with_that_name(browser, app):
+    # viser sends a field's edits through a throttled sender but a click at once, so a click
+    # right after the last keystroke can reach the server before the name does.
+    context = browser.new_context(viewport={"width": 1280, "height": 760})
+    try:
+        page, server_tab = open_page(app, context)
+        page.get_by_text("Who is labelling?").wait_for(timeout=30_000)
+        page.get_by_role("button", name="Start labelling").click()  # nothing typed: asked again
+        page.get_by_text("type your name first").wait_for(timeout=10_000)
+        give_name(page, "quinn")  # typed and clicked at once
+        wait_until(lambda: server_tab.ready.is_set(), 30, "the first state to be drawn")
+        assert server_tab.session.labeller == "quinn"
+    finally:
+        context.close()
+
+
 def test_enter_on_the_focused_start_button_starts_labelling(tabs):
     tab = tabs("lin", submit="button-enter")
     assert tab.session.labeller == "lin"
