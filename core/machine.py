@@ -3,6 +3,7 @@ Python, platform."""
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 from pathlib import Path
@@ -68,6 +69,45 @@ def compiled_for() -> str:
     return vector_width()
 
 
+# The OpenBLAS kernels each vector width's machines pick (and the shipped numbers were made
+# with): an AVX-512 CPU that OpenBLAS does not know (AMD Zen 5 with OpenBLAS 0.3.31) gets its
+# Haswell kernels, whose last bits differ from SkylakeX's.
+USUAL_BLAS_KERNELS = {
+    "avx512": frozenset({"SkylakeX", "Cooperlake", "SapphireRapids"}),
+    "avx2": frozenset({"Haswell", "Zen"}),
+}
+
+
+@functools.lru_cache(maxsize=1)
+def openblas_kernel() -> str | None:
+    """The kernel family the loaded OpenBLAS picked ('SkylakeX', 'Haswell'), None without one."""
+    import numpy  # noqa: F401  (loads the OpenBLAS whose kernels the numbers come from)
+
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return None
+    for info in threadpool_info():
+        if info.get("internal_api") == "openblas" and info.get("architecture"):
+            return str(info["architecture"])
+    return None
+
+
+def numeric_kind_of(compiled: str, blas_kernel: str | None) -> str:
+    """The numeric kind of a (compiled-for width, OpenBLAS kernel) pair: the width alone where
+    the kernel is the usual one for it, else both ('avx512, OpenBLAS Haswell')."""
+    usual = USUAL_BLAS_KERNELS.get(compiled)
+    if blas_kernel is None or usual is None or blas_kernel in usual:
+        return compiled
+    return f"{compiled}, OpenBLAS {blas_kernel}"
+
+
+def numeric_kind() -> str:
+    """The kind of CPU whose numbers this process makes to the last bit: the vector width numba
+    compiles for, plus OpenBLAS's kernels where they are not that width's usual ones."""
+    return numeric_kind_of(compiled_for(), openblas_kernel())
+
+
 def machine_line() -> str:
     """One line naming where a figure was measured: 'AMD EPYC (avx512), 2 cores, load 0.5'
     ('AMD EPYC (avx512, code compiled for avx2), ...' under `compile_for_avx2`)."""
@@ -115,6 +155,7 @@ def machine_info() -> dict:
         "cpu_model": cpu_model(),
         "vector_width": vector_width(),
         "compiled_for": compiled_for(),
+        "numeric_kind": numeric_kind(),
         "cpu_count": os.cpu_count(),
         "usable_cores": usable_cores(),
         "load_average_1m": load,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -16,11 +17,43 @@ def test_the_machine_line_names_the_vector_width_and_an_avx2_build(monkeypatch, 
     monkeypatch.delenv("NUMBA_CPU_FEATURES", raising=False)
     assert machine.compiled_for() == width and f"({width})" in machine.machine_line()
     for var in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES", "OPENBLAS_CORETYPE", "NUMBA_CACHE_DIR"):
-        monkeypatch.delenv(var, raising=False)  # restored after the test
+        # setenv first: delenv of an absent variable records nothing to undo, and the values
+        # compile_for_avx2 sets would outlive the test
+        monkeypatch.setenv(var, "")
+        monkeypatch.delenv(var)
     machine.compile_for_avx2(tmp_path)
     assert machine.compiled_for() == "avx2"
     assert "code compiled for avx2" in machine.machine_line() or width == "avx2"
     assert machine.machine_info()["compiled_for"] == "avx2"
+
+
+def test_the_numeric_kind_names_blas_kernels_only_where_they_are_not_the_widths_usual_ones():
+    assert machine.numeric_kind_of("avx512", "SkylakeX") == "avx512"
+    assert machine.numeric_kind_of("avx512", "Cooperlake") == "avx512"
+    assert machine.numeric_kind_of("avx2", "Haswell") == "avx2"
+    assert machine.numeric_kind_of("avx2", None) == "avx2"  # no OpenBLAS loaded
+    # An AVX-512 CPU that OpenBLAS does not know (AMD Zen 5) runs its Haswell kernels: its last
+    # bits are not those of the shipped AVX-512 numbers.
+    assert machine.numeric_kind_of("avx512", "Haswell") == "avx512, OpenBLAS Haswell"
+    assert machine.numeric_kind_of("avx2", "Sandybridge") == "avx2, OpenBLAS Sandybridge"
+
+
+def test_the_numeric_kind_follows_the_kernels_openblas_loaded() -> None:
+    """In fresh processes (OpenBLAS picks its kernels once, when it loads)."""
+    code = "from knotlab.core import machine; print(machine.numeric_kind())"
+    env = dict(os.environ)  # as this process loaded it (a box may set OPENBLAS_CORETYPE)
+    plain = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert plain == machine.numeric_kind()
+    forced = subprocess.run(
+        [sys.executable, "-c", code],
+        env={**env, "OPENBLAS_CORETYPE": "Sandybridge"},  # kernels every x86-64 CPU here runs
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    assert forced == f"{machine.compiled_for()}, OpenBLAS Sandybridge"
 
 
 @pytest.mark.slow

@@ -27,7 +27,7 @@ import numpy as np
 from knotlab.core.arrays import cloud_digest
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.hashing import ContentHash
-from knotlab.core.machine import vector_width
+from knotlab.core.machine import numeric_kind
 from knotlab.core.npzfile import read_npz, write_npz
 from knotlab.core.selection.features import LibraryFeaturizer, ScanSummary
 
@@ -62,8 +62,8 @@ class ScanSummaryCache:
 
     def __init__(self, identity: ScanCacheIdentity, made_on: str | None = None) -> None:
         self.identity = identity
-        # The CPU kind (core.machine.vector_width) the stored summaries were computed on.
-        self.made_on = made_on or vector_width()
+        # The CPU kind (core.machine.numeric_kind) the stored summaries were computed on.
+        self.made_on = made_on or numeric_kind()
         self._items: dict[str, ScanSummary] = {}
         # (landmark set's hash, cloud digest) -> the state's landmark weights (a model's
         # landmarks; a retrain draws new ones)

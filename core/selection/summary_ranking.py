@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.machine import vector_width
+from knotlab.core.machine import numeric_kind
 from knotlab.core.registration import ScanResult
 from knotlab.core.registration.tps import ThinPlateSpline
 from knotlab.core.selection.features import LibraryFeaturizer, ScanSummary
@@ -63,7 +63,7 @@ def summary_scan(
     """(phi or None without a model, the scan) of a cloud ``cache`` holds, with its ``top_k``
     best demos registered; None when the cache does not hold it, belongs to another library or
     preset, or was made on another CPU kind (then scan the state in full)."""
-    if cache.made_on != vector_width() or ScanCacheIdentity.of(featurizer) != cache.identity:
+    if cache.made_on != numeric_kind() or ScanCacheIdentity.of(featurizer) != cache.identity:
         return None
     summary = cache.get(cloud_n3)
     if summary is None:

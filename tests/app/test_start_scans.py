@@ -43,8 +43,8 @@ def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
     out = tmp_path / "scans_main_train.npz"
     argv = ["tasks", "scans", "--level", "main", "--tasks", "40", "--out", str(out)]
     subprocess.run([sys.executable, "-m", "knotlab.app.cli", *argv, "--no-progress"], check=True)
-    shipped = defaults.scans_path("main", "train")  # made on this CPU kind
-    if not shipped.exists():  # a kind no file is shipped for: compare with the AVX-512 one
+    shipped = defaults.scans_path("main", "train")  # made on this vector width
+    if not shipped.exists():  # a width no file is shipped for: compare with the AVX-512 one
         shipped = defaults.scans_path("main", "train", kind="avx512")
     made, header = read_npz(out, "scans")
     stored, stored_header = read_npz(shipped, "scans")
@@ -61,9 +61,10 @@ def test_the_shipped_scans_regenerate_from_the_command(tmp_path) -> None:
         for name in ("ok_sa", "costs_sac", "grasp_sa"):
             assert np.array_equal(made[name][rows_made], stored[name][rows_stored], equal_nan=True)
         return
-    # Another CPU kind: a cloud a tab observes from a stored rope may differ in its last bits
-    # (one of 600 on an AVX2 EPYC against the AVX-512 box's file; the app then scans that start
-    # in full), and the scans' numbers differ in theirs.
+    # Another numeric kind (another width, or OpenBLAS kernels unusual for it, as on a Zen 5):
+    # a cloud a tab observes from a stored rope may differ in its last bits (one of 600 on an
+    # AVX2 EPYC against the AVX-512 box's file; the app then scans that start in full), and the
+    # scans' numbers differ in theirs.
     assert len(both) >= 78, len(both)
     assert np.array_equal(made["ok_sa"][rows_made], stored["ok_sa"][rows_stored])
     # Numbers: all but a few within 0.2 % (AVX2 against AVX-512: 3 of 359,400 costs, where a

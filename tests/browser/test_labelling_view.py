@@ -96,14 +96,14 @@ def assert_framed(tab, what: str, shot: str) -> None:
 
 
 def test_each_new_state_frames_every_candidate_clear_of_the_panel(tabs, app):
-    from knotlab.core.machine import vector_width
+    from knotlab.core.machine import numeric_kind
     from knotlab.core.selection.summary_ranking import SummaryScan
 
     tab = tabs("fra")
     assert_framed(tab, "the first state", "framed_first")
     # A start is ranked from the shipped start scans where they were made on this CPU kind
     # (the five candidates drawn registered alone), else from a full scan.
-    quick = app.resources.start_scans.made_on == vector_width()
+    quick = app.resources.start_scans.made_on == numeric_kind()
     assert isinstance(tab.session.scan, SummaryScan) == quick
     first = tab.session.view().task_id
     tab.press("r")  # another rope

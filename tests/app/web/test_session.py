@@ -324,7 +324,7 @@ def test_a_fresh_start_is_ranked_from_the_shipped_start_scans_as_a_full_scan_wou
 ):
     from knotlab.app import defaults
     from knotlab.app.web.resources import load_resources
-    from knotlab.core.machine import vector_width
+    from knotlab.core.machine import numeric_kind
     from knotlab.core.registration import ScanResult
     from knotlab.core.selection.qmodel import QModel
     from knotlab.core.selection.summary_ranking import SummaryScan
@@ -345,7 +345,7 @@ def test_a_fresh_start_is_ranked_from_the_shipped_start_scans_as_a_full_scan_wou
         store.close()
     quick, full = views
     assert quick.task_id == full.task_id  # the same start, claimed first in both stores
-    if scanned.start_scans.made_on != vector_width():  # summaries of another CPU kind: unused
+    if scanned.start_scans.made_on != numeric_kind():  # summaries of another CPU kind: unused
         assert isinstance(scans[0][0], ScanResult)
         return
     assert isinstance(scans[0][0], SummaryScan) and scans[0][1] == 0  # no library scan made
