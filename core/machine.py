@@ -110,7 +110,8 @@ def numeric_kind() -> str:
 
 def machine_line() -> str:
     """One line naming where a figure was measured: 'AMD EPYC (avx512), 2 cores, load 0.5'
-    ('AMD EPYC (avx512, code compiled for avx2), ...' under `compile_for_avx2`)."""
+    ('AMD EPYC (avx512, code compiled for avx2), ...' under `compile_for_avx2`; '(avx512,
+    OpenBLAS Haswell)' where the environment picks OpenBLAS kernels unusual for the width)."""
     try:
         load = f", load {os.getloadavg()[0]:.1f}"
     except OSError:
@@ -118,6 +119,9 @@ def machine_line() -> str:
     width = vector_width()
     target = compiled_for()
     kind = width if target == width else f"{width}, code compiled for {target}"
+    numeric = numeric_kind()
+    if numeric != target:
+        kind += numeric[len(target) :]
     return f"{cpu_model()} ({kind}), {usable_cores()} cores{load}"
 
 
