@@ -9,7 +9,7 @@ import numpy as np
 import viser
 
 from knotlab.app.web.session_records import Phase
-from tests.browser.conftest import give_name, open_page, open_tab, wait_until
+from tests.browser.conftest import give_name, keep_shot, open_page, open_tab, wait_until
 
 
 def _scene_has(page, name: str) -> bool:
@@ -482,6 +482,8 @@ def test_the_name_prompt_says_why_an_empty_or_reserved_name_does_not_start(brows
         page.get_by_text("type your name first").wait_for(timeout=10_000)
         give_name(page, "oracle")  # the simulated expert's name: refused, asked again
         page.get_by_text("names the simulated expert").wait_for(timeout=10_000)
+        keep_shot(page, "name_refused")
+        assert page.get_by_text("type your name first").count() == 0  # the reason stays
         assert server_tab.session is None
         give_name(page, "oona")
         wait_until(lambda: server_tab.ready.is_set(), 30, "the first state to be drawn")
