@@ -250,6 +250,14 @@ def slack_weight(shipped: dict, requested: float | None) -> tuple[float, str]:
     return C, "" if float(shipped["C"]) == C else f"-C{C:g}"
 
 
+def margin_weight(shipped: dict, requested: float | None) -> tuple[float, str]:
+    """The margin scale to fit with (default: the shipped model's, else 1) and the suffix its
+    models' names take: "" for the shipped scale, else "-m<value>"."""
+    base = float(shipped.get("margin_scale", 1.0))
+    scale = base if requested is None else float(requested)
+    return scale, "" if scale == base else f"-m{scale:g}"
+
+
 def _ordered(models: dict) -> list[str]:
     """The models in the fixed order (then any other slack weight's), not the file's sorted one."""
     return [n for n in MODELS if n in models] + sorted(set(models) - set(MODELS))

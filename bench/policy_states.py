@@ -127,11 +127,14 @@ def fit(
     workers: int,
     C: float = 1000.0,
     D: float = 10.0,
+    margin_scale: float = 1.0,
 ) -> tuple[Path, dict]:
-    """Fit with the shipped model's settings (C, D) on everything but the held-out executions."""
+    """Fit with the shipped model's settings (C, D, margin scale) on everything but the
+    held-out executions."""
     search = QModelSearch(
         C=(C,),
         D=(D,),
+        margin_scale=margin_scale,
         landmarks=(50, 20),
         tries=tries,
         validation_ids=held_out,

@@ -17,7 +17,8 @@ Subcommands (resumable, same seeds, same files):
   starts    the training starts outside the held-out fifth as a task-set file
             (<out>/starts_<level>.npz), for `knotlab label --task-set`
   fit       models from them, scored on held-out starts -> <out>/search.json, models, table
-            (--arms A,B fits only those; --C X another slack weight, as arms named A-CX)
+            (--arms A,B fits only those; --C X another slack weight, as arms named A-CX;
+            --margin-scale M another margin scale, as arms named A-mM)
 
 A second step (DAgger with the search as the expert): `knotlab label --search la2x5 --from-policy
 greedy --policy-model <out>/model_search-both+floor.npz --task-set <out>/starts_main.npz
@@ -53,6 +54,7 @@ from level_models import (  # noqa: E402
     LEVELS,
     held_out_ranking,
     level_split,
+    margin_weight,
     results_dir,
     slack_weight,
 )
@@ -311,6 +313,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     shipped = QModel.load(task.files.model_path).hyperparameters
     D = float(shipped["D"])
     C, suffix = slack_weight(shipped, args.C)  # another C is its own arm: "<arm>-C<value>"
+    margin_scale, m_suffix = margin_weight(shipped, args.margin_scale)  # "<arm>...-m<value>"
+    suffix += m_suffix
     wanted = list(ARMS) if args.arms is None else args.arms.split(",")
     unknown = sorted(set(wanted) - set(ARMS))
     if unknown:
@@ -361,11 +365,22 @@ def cmd_fit(args: argparse.Namespace) -> int:
             for part in arm:
                 if part.startswith("dagger"):
                     tries.update(read_tries(dagger_files(out, *dagger_part(part))[1]))
-        fit(executions, library, held_ids, tries, model_path, args.workers, C=C, D=D)
+        fit(
+            executions,
+            library,
+            held_ids,
+            tries,
+            model_path,
+            args.workers,
+            C=C,
+            D=D,
+            margin_scale=margin_scale,
+        )
         rec = {
             "parts": list(arm),
             "C": C,
             "D": D,
+            "margin_scale": margin_scale,
             "model": str(model_path),
             "model_hash": QModel.load(model_path).content_hash(),
             "train_executions": len(executions),
@@ -432,6 +447,13 @@ if __name__ == "__main__":
     f.add_argument("--arms", default=None, help="ARM,ARM,... (default: every arm)")
     f.add_argument(
         "--C", type=float, default=None, help="slack weight (default: the shipped model's)"
+    )
+    f.add_argument(
+        "--margin-scale",
+        type=float,
+        default=None,
+        help="how many value units the typical wrong demo must lose by (default: the shipped "
+        "model's); another scale is its own arm, named A-m<value>",
     )
     f.set_defaults(func=cmd_fit)
     args = ap.parse_args()

@@ -561,3 +561,11 @@ def test_another_slack_weight_names_its_own_models_and_sorts_after_the_fixed_one
     assert lm.slack_weight({"C": 1000.0}, 1000) == (1000.0, "")
     assert lm.slack_weight({"C": 1000.0}, 3000.0) == (3000.0, "-C3000")
     assert lm._ordered({"both-C3000": 0, "hard": 0, "main": 0}) == ["main", "hard", "both-C3000"]
+
+
+def test_another_margin_scale_names_its_own_models(project_root) -> None:
+    lm = load_bench_module(project_root, "level_models")
+    assert lm.margin_weight({"margin_scale": 1.0}, None) == (1.0, "")
+    assert lm.margin_weight({}, 1.0) == (1.0, "")  # a model from before the scale was recorded
+    assert lm.margin_weight({"margin_scale": 1.0}, 3) == (3.0, "-m3")
+    assert lm.margin_weight({"margin_scale": 1.0}, 0.3) == (0.3, "-m0.3")
