@@ -91,16 +91,16 @@ def _build_agent(key: tuple[str, str]):
     from knotlab.core.agent import Agent
     from knotlab.core.world.sim import RopeWorld
 
-    library_path, model_path = key
-    return RopeWorld(), Agent(DemoLibrary.load(library_path), QModel.load(model_path), "greedy")
+    library_path, model_path, policy = key
+    return RopeWorld(), Agent(DemoLibrary.load(library_path), QModel.load(model_path), policy)
 
 
 _AGENTS = PerProcess(_build_agent)
 
 
-def _episode(job: tuple[str, str, str, RopeTask]) -> dict:
-    name, library_path, model_path, start = job
-    world, agent = _AGENTS.get((library_path, model_path))
+def _episode(job: tuple[str, str, str, str, RopeTask]) -> dict:
+    name, library_path, model_path, policy, start = job
+    world, agent = _AGENTS.get((library_path, model_path, policy))
     result = agent.run_episode(world, start)
     return {
         "model": name,
@@ -154,6 +154,9 @@ def main() -> int:
     ap.add_argument("--models", required=True, help="NAME=PATH,... (first: the reference)")
     ap.add_argument("--out-dir", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--policy", default="greedy", help="what every model plays: greedy (default), la2x5, ..."
+    )
     args = ap.parse_args()
     print(machine_line())
     models = parse_models(args.models)
@@ -166,6 +169,9 @@ def main() -> int:
         old = json.loads(meta_path.read_text())
         if old.get("starts_hash") != starts.content_hash() or old.get("level") != args.level:
             raise SystemExit(f"{out}: made with other starts; use another --out-dir")
+        made_with = old.get("policy", "greedy")
+        if made_with != args.policy:
+            raise SystemExit(f"{out}: made with {made_with}; use another --out-dir")
     outcomes = out / "outcomes.jsonl"
     lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.exists() else []
     hashes = {name: QModel.load(path).content_hash() for name, path in models.items()}
@@ -182,14 +188,14 @@ def main() -> int:
         )
     done = {(ln["model"], ln["task_id"]) for ln in lines}
     jobs = [
-        (name, library_path, str(path), s)
+        (name, library_path, str(path), args.policy, s)
         for name, path in models.items()
         for s in starts
         if (name, s.task_id) not in done
     ]
     with outcomes.open("a", encoding="utf-8") as fh:
         for _, line in imap_processes(
-            _episode, jobs, workers=args.workers, desc=f"greedy on {len(starts)} starts"
+            _episode, jobs, workers=args.workers, desc=f"{args.policy} on {len(starts)} starts"
         ):
             line["model_hash"] = hashes[line["model"]]
             fh.write(json.dumps(line) + "\n")
@@ -199,6 +205,7 @@ def main() -> int:
     summary = {
         "task": args.task,
         "level": args.level,
+        "policy": args.policy,
         "seed": seed,
         "starts": args.starts,
         "starts_hash": starts.content_hash(),
@@ -331,7 +338,7 @@ def _plot(summary: dict, path: Path) -> None:
         ax.plot([i, i], r["wilson"], color="black", lw=1.5)
     ax.set_xticks(range(len(names)), names, rotation=20, ha="right")  # long names must not overlap
     ax.set_ylim(0, 1)
-    ax.set_ylabel("greedy success (Wilson 95 %)")
+    ax.set_ylabel(f"{summary.get('policy', 'greedy')} success (Wilson 95 %)")
     ax.set_title(
         f"{summary.get('task', 'overhand')}, {summary['level']} level, "
         f"{summary['starts']} fresh validation starts"

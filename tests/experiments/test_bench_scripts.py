@@ -220,6 +220,26 @@ def test_greedy_validation_pairs_models_on_the_same_starts(project_root, tmp_pat
             gv.parse_models(bad)
 
 
+def test_greedy_validation_plays_the_policy_asked_and_keeps_a_folder_to_it(
+    project_root, tmp_path
+) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from knotlab.app import defaults
+
+    out = tmp_path / "val"
+    argv = [sys.executable, str(project_root / "bench" / "greedy_validation.py")]
+    argv += ["--starts", "2", "--workers", "1", "--out-dir", str(out)]
+    argv += ["--models", f"shipped={defaults.MODEL_PATH}"]
+    subprocess.run([*argv, "--policy", "nn"], check=True, capture_output=True, cwd=project_root)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["policy"] == "nn" and summary["results"]["shipped"]["starts"] == 2
+    again = subprocess.run([*argv], capture_output=True, text=True, cwd=project_root)
+    assert again.returncode != 0 and "made with nn" in again.stderr  # greedy is the default
+
+
 def test_task_transfer_pairs_arms_with_the_per_task_model_and_refuses_errored_runs(
     project_root, tmp_path
 ) -> None:
