@@ -222,7 +222,7 @@ def main() -> int:
         print(f"{len(errored)} episodes errored: no table", file=sys.stderr)
         return 1
     _plot(summary, out / "greedy_validation.png")
-    print_paired_table(summary["results"], "model")
+    print_paired_table(summary["results"], "model", args.policy)
     return 0
 
 
@@ -310,9 +310,9 @@ def play_weight_arms(
     return 0
 
 
-def print_paired_table(results: dict, arm: str) -> None:
+def print_paired_table(results: dict, arm: str, policy: str = "greedy") -> None:
     """The Markdown table of ``summarise``'s results, one row an arm."""
-    print(f"| {arm} | greedy success | Wilson 95 % | vs first: wins / losses | sign test p |")
+    print(f"| {arm} | {policy} success | Wilson 95 % | vs first: wins / losses | sign test p |")
     print("|---|---|---|---|---|")
     for n, r in results.items():
         lo, hi = r["wilson"]
