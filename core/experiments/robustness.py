@@ -2,10 +2,12 @@
 with the matched world, task by task.
 
 A study setting is a world (`core/world/mismatch.py`) and a state estimator
-(`core/world/estimate.py`); the agent's model is always the nominal world (the one its library
-and Q-model were made in). Outcomes are compared with the matched world's outcomes of the same
-policy on the same tasks: how many tasks the mismatch lost (knotted when matched, not here) and
-gained, with an exact two-sided sign test on those discordant tasks.
+(`core/world/estimate.py`); the agent's model is the nominal world (the one its library and
+Q-model were made in), which measures the rope's length (and with ``:measured`` its radius) at
+the start, or in a control the world's own physics. Outcomes are compared with the matched
+world's outcomes of the same policy on the same tasks: how many tasks the mismatch lost
+(knotted when matched, not here) and gained, with an exact two-sided sign test on those
+discordant tasks.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ class StudySetting:
     name: str  # the results folder's name, e.g. "combined25", "mass-50", "tracker"
     world: str  # a physics setting name (`mismatch.parse_setting`)
     estimator: EstimatorKind = EstimatorKind.PERFECT
-    # The agent's model: "nominal", or the world's own setting (a control: the same world with a
-    # model that knows it, so what is left of a loss is the world being unlike the demos').
+    # The agent's model: "nominal", the world's own setting (a control: the same world with a
+    # model that knows it, so what is left of a loss is the world being unlike the demos'), or
+    # "measured" (nominal, but measuring the rope's radius from the first cloud, as its length).
     agent_model: str = "nominal"
 
     @property
@@ -50,7 +53,8 @@ class StudySetting:
 def parse_study_settings(text: str) -> list[StudySetting]:
     """Settings from a comma list: nominal, tracker, video, combinedPCT, FACTOR+PCT, FACTOR-PCT,
     familiesPCT (every factor at +PCT and -PCT where that is a possible world), or any world
-    followed by ``:known`` (the agent's model is that world's own physics: a control)."""
+    followed by ``:known`` (the agent's model is that world's own physics: a control) or
+    ``:measured`` (the nominal model measuring the rope's radius too)."""
     out: list[StudySetting] = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
@@ -61,6 +65,10 @@ def parse_study_settings(text: str) -> list[StudySetting]:
             world = item.removesuffix(":known")
             parse_setting(world)
             out.append(StudySetting(f"{world}_known", world, agent_model=world))
+        elif item.endswith(":measured"):
+            world = item.removesuffix(":measured")
+            parse_setting(world)
+            out.append(StudySetting(f"{world}_measured", world, agent_model="measured"))
         elif item.startswith("families"):
             try:
                 pct = float(item.removeprefix("families"))

@@ -159,6 +159,9 @@ class PhysicsSetting:
     combined_level: float = 0.0  # combined: every factor drawn from U(1 - level, 1 + level)
     seed: int = 0  # combined: the setting's seed (with the task id, the per-task draw's)
     fixed: PhysicsParams | None = None  # file: the parameters read
+    # An agent's model only: it also measures the rope's radius from the camera's first cloud
+    # (`measured_model`), as every model measures the length ("measured": nominal otherwise).
+    measures_radius: bool = False
 
     @property
     def is_nominal(self) -> bool:
@@ -243,6 +246,8 @@ def parse_setting(text: str, *, seed: int = 0) -> PhysicsSetting:
     name = text.strip()
     if name == "nominal":
         return PhysicsSetting("nominal")
+    if name == "measured":
+        return PhysicsSetting("measured", measures_radius=True)
     match = _COMBINED.fullmatch(name)
     if match:
         level = float(match["pct"]) / 100
@@ -269,7 +274,8 @@ def parse_setting(text: str, *, seed: int = 0) -> PhysicsSetting:
         return PhysicsSetting(f"file:{path}", fixed=PhysicsParams.from_dict(data, str(path)))
     factors = ", ".join(f.value for f in MismatchFactor)
     raise InvalidInputError(
-        f"unknown physics setting {text!r}; expected nominal, FACTOR+PCT or FACTOR-PCT "
+        f"unknown physics setting {text!r}; expected nominal, measured (a model: nominal, "
+        "measuring the rope's radius), FACTOR+PCT or FACTOR-PCT "
         f"(e.g. mass+25; factors: {factors}), combinedPCT (e.g. combined25) or a .json file"
     )
 
@@ -295,20 +301,83 @@ NOMINAL_SETTING = PhysicsSetting("nominal")
 MEASURED_LENGTH_TOLERANCE = 0.01
 
 
-def measured_model(model: PhysicsParams, start_nodes_k3: np.ndarray) -> PhysicsParams:
-    """The agent's model with the rope length it measures at the start of an episode.
+# Heights above the table are what a camera measures a rope's thickness by; within this the
+# rope is the model's own (the matched world measures its radius exactly).
+MEASURED_RADIUS_TOLERANCE = 0.02
+
+
+def at_rest(nodes_k3: np.ndarray, radius: float) -> np.ndarray:
+    """The chain lying on the table as a rope of ``radius`` does: every node at that height."""
+    nodes = np.array(nodes_k3, dtype=float)
+    nodes[:, 2] = radius
+    return nodes
+
+
+def measured_radius(seen_n3: np.ndarray, nodes_k3: np.ndarray, own_radius: float) -> float:
+    """The radius of the rope at rest in the upper-surface cloud ``seen_n3``, lying along
+    ``nodes_k3`` (its centreline in the table's plane).
+
+    A point at distance d (in the plane) from the centreline of a rope of radius r lying on the
+    table is at height r + sqrt(r^2 - d^2); the radius is the one that fits every point's height
+    best (a robust least-squares fit, from ``own_radius``; points more than two of the model's
+    diameters high, on a crossing strand, are left out)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial import cKDTree
+
+    seen = np.asarray(seen_n3, dtype=float)
+    if seen.ndim != 2 or seen.shape[1] != 3 or len(seen) == 0:
+        raise InvalidInputError(f"a rope's cloud must be (n > 0, 3), got {seen.shape}")
+    nodes = np.asarray(nodes_k3, dtype=float)[:, :2]
+    t = np.linspace(0.0, 1.0, 20, endpoint=False)
+    line = (nodes[:-1, None, :] + t[None, :, None] * (nodes[1:] - nodes[:-1])[:, None, :]).reshape(
+        -1, 2
+    )
+    line = np.vstack([line, nodes[-1:]])
+    d_n = cKDTree(line).query(seen[:, :2])[0]
+    z_n = seen[:, 2]
+    keep = z_n < 4.0 * own_radius
+    d_n, z_n = d_n[keep], z_n[keep]
+    if len(z_n) == 0:
+        raise InvalidInputError("no point of the cloud lies on a rope resting on the table")
+
+    def residual(r: np.ndarray) -> np.ndarray:
+        return z_n - r[0] - np.sqrt(np.maximum(r[0] ** 2 - d_n**2, 0.0))
+
+    fit = least_squares(
+        residual,
+        x0=[own_radius],
+        bounds=([0.1 * own_radius], [10.0 * own_radius]),
+        loss="soft_l1",
+        f_scale=0.1 * own_radius,
+    )
+    return float(fit.x[0])
+
+
+def measured_model(
+    model: PhysicsParams, start_nodes_k3: np.ndarray, seen_n3: np.ndarray | None = None
+) -> PhysicsParams:
+    """The agent's model with the rope length (and, given the camera's cloud ``seen_n3`` of the
+    start rope at rest, the radius) it measures at the start of an episode.
 
     A robot sees how long its rope is, so a model never simulates a rope of another length
     than the one in front of it (its transferred grasps would land off the model's rope): where
     the start rope's length differs from the model's by more than 1 %, the model takes it (its
-    radius capped so that the rope still fits its links). Every other factor stays the model's.
+    radius capped so that the rope still fits its links). With ``seen_n3`` the same for the
+    radius, measured from the cloud's heights (`measured_radius`), beyond 2 %. Every other
+    factor stays the model's.
     """
     from knotlab.core.world.rope import rope_length
 
-    measured = rope_length(start_nodes_k3)
     rope = model.rope
-    if abs(measured - rope.length) <= MEASURED_LENGTH_TOLERANCE * rope.length:
+    length, radius = rope.length, rope.radius
+    measured = rope_length(start_nodes_k3)
+    if abs(measured - length) > MEASURED_LENGTH_TOLERANCE * length:
+        length = measured
+    if seen_n3 is not None:
+        seen_radius = measured_radius(seen_n3, start_nodes_k3, radius)
+        if abs(seen_radius - radius) > MEASURED_RADIUS_TOLERANCE * radius:
+            radius = seen_radius
+    if (length, radius) == (rope.length, rope.radius):
         return model
-    link = measured / rope.n_links
-    rope = replace(rope, length=measured, radius=min(rope.radius, 0.5 * link * (1 - 1e-9)))
-    return PhysicsParams(rope, model.gripper)
+    radius = min(radius, 0.5 * length / rope.n_links * (1 - 1e-9))  # the rope fits its links
+    return PhysicsParams(replace(rope, length=length, radius=radius), model.gripper)

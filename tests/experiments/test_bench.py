@@ -203,6 +203,28 @@ def test_worker_turns_an_unexpected_exception_into_an_error_outcome():
         worker.close()
 
 
+def test_a_measuring_model_simulates_the_world_s_radius_and_the_matched_world_itself():
+    from knotlab.core.world.mismatch import parse_setting
+
+    start = mini_library(2)[0].pre_nodes_k3
+    job = EpisodeJob("nn", 0, "t", start, 1, 1, 0.0)
+    measured = parse_setting("measured")
+    thicker = parse_setting("radius+25")
+    thick = BenchWorker(WorkerSpec(mini_library(2), None, None, thicker, measured))
+    matched = BenchWorker(WorkerSpec(mini_library(2), None, None, agent_model=measured))
+    blind = BenchWorker(WorkerSpec(mini_library(2), None, None, parse_setting("radius+25")))
+    try:
+        world, model_world, _ = thick._worlds_for(job)
+        assert world.params.radius == pytest.approx(0.0125)
+        assert model_world is not None
+        assert model_world.params.radius == pytest.approx(0.0125, rel=3e-3)
+        assert matched._worlds_for(job)[1] is None  # the world itself: today's episodes
+        assert blind._worlds_for(job)[1].params.radius == pytest.approx(0.01)  # not measured
+    finally:
+        for w in (thick, matched, blind):
+            w.close()
+
+
 # ---------------------------------------------------------------------------- the command
 
 

@@ -21,6 +21,12 @@ def test_settings_parse_names_families_the_tracker_and_controls():
     assert by_name["tracker"].world == "nominal"
     assert by_name["video"].estimator is EstimatorKind.VIDEO and by_name["video"].world == "nominal"
     assert by_name["combined50_known"].agent_model == "combined50"
+    measured = parse_study_settings("radius+25:measured")[0]
+    assert (measured.name, measured.world, measured.agent_model) == (
+        "radius+25_measured",
+        "radius+25",
+        "measured",
+    )
     assert by_name["mass-10"].factor is MismatchFactor.MASS
     assert by_name["mass-10"].level == pytest.approx(0.1)
     assert by_name["combined25"].level == 0.25

@@ -13,9 +13,11 @@ from knotlab.core.world.mismatch import (
     NOMINAL,
     MismatchFactor,
     PhysicsParams,
+    at_rest,
     combined_params,
     family_settings,
     measured_model,
+    measured_radius,
     parse_setting,
     scale_factor,
 )
@@ -132,3 +134,28 @@ def test_the_model_measures_a_rope_of_another_length_and_keeps_its_own_otherwise
     assert 2 * short.rope.radius <= short.rope.link_length  # thinned to fit its shorter links
     assert math.isclose(short.rope.length, 0.6)
     assert np.isfinite(short.rope.radius)
+
+
+def test_a_measuring_model_takes_the_radius_the_camera_sees_and_keeps_its_own_otherwise():
+    from knotlab.core.world.observation import surface_cloud_of_nodes
+
+    rope = straight_rope(41, 0.998)
+    rope[:, 1] = 0.01 * np.sin(np.linspace(0.0, 6.0, 41))  # bent a little, as starts are
+
+    def seen(radius: float) -> np.ndarray:  # the camera's cloud of the world's rope at rest
+        return surface_cloud_of_nodes(at_rest(rope, radius), radius)
+
+    for radius in (0.006, 0.0075, 0.01, 0.0125):
+        got = measured_radius(seen(radius), rope, NOMINAL.rope.radius)
+        assert got == pytest.approx(radius, rel=3e-3)  # within 0.3 %
+    assert measured_model(NOMINAL, rope, seen(NOMINAL.rope.radius)) is NOMINAL  # matched
+    assert measured_model(NOMINAL, rope, seen(1.01 * NOMINAL.rope.radius)) is NOMINAL  # within 2 %
+    thick = measured_model(NOMINAL, rope, seen(0.0125))  # as thick as its links allow
+    assert thick.rope.radius == pytest.approx(0.0125, rel=3e-3) and thick.rope.radius <= 0.0125
+    assert thick.rope.length == NOMINAL.rope.length and thick.gripper == NOMINAL.gripper
+    assert measured_model(NOMINAL, rope) is NOMINAL  # no cloud: the radius is not measured
+    with pytest.raises(InvalidInputError, match="cloud"):
+        measured_radius(np.zeros((0, 3)), rope, 0.01)
+    setting = parse_setting("measured")
+    assert setting.measures_radius and setting.params_for("t") == NOMINAL
+    assert not parse_setting("nominal").measures_radius

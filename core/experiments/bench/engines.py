@@ -159,7 +159,14 @@ class BenchWorker:
         if physics.rope.length != NOMINAL.rope.length:
             ratio = physics.rope.length / NOMINAL.rope.length
             start = scale_xy_to_length(start, ratio * rope_length(start))
-        model = measured_model(spec.agent_model.params_for(job.task_id), start)
+        seen = None
+        if spec.agent_model.measures_radius:  # the camera's cloud of the world's rope at rest
+            from knotlab.core.world.mismatch import at_rest
+            from knotlab.core.world.observation import surface_cloud_of_nodes
+
+            radius = physics.rope.radius
+            seen = surface_cloud_of_nodes(at_rest(start, radius), radius)
+        model = measured_model(spec.agent_model.params_for(job.task_id), start, seen)
         if physics == model and spec.estimator is EstimatorKind.PERFECT:
             return world, None, start
         if model not in self._model_worlds:
