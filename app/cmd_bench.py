@@ -94,6 +94,17 @@ def physics_setting(text: str) -> str:
     return text
 
 
+def world_setting(text: str) -> str:
+    """argparse type of --world-params: a physics setting that is a world ("measured" names an
+    agent's model that measures the rope, not a world)."""
+    if text.strip() == "measured":
+        raise argparse.ArgumentTypeError(
+            "'measured' is an agent model (--model-params), not a world; the world it measures "
+            "is nominal"
+        )
+    return physics_setting(text)
+
+
 DEFAULT_POLICIES = "nn,greedy,la1x10,la2x5,oracle"
 
 
@@ -319,7 +330,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     reads(
         p.add_argument(
             "--world-params",
-            type=physics_setting,
+            type=world_setting,
             default="nominal",
             metavar="NAME|FILE.json",
             help="the physics of the world that executes: nominal, FACTOR+PCT or FACTOR-PCT (e.g. "

@@ -190,6 +190,7 @@ def test_bench_records_each_tasks_world_and_refuses_to_mix_worlds(files, tmp_pat
     [
         (("--world-params", "massy+5"), "unknown physics setting"),
         (("--model-params", "radius+50"), "not a valid world"),
+        (("--world-params", "measured"), "an agent model (--model-params), not a world"),
         (("--estimator", "psychic"), "invalid choice"),
     ],
 )
