@@ -243,19 +243,25 @@ def choose(models: dict, level: str) -> str:
     )
 
 
+def _variant(
+    shipped: dict, key: str, requested: float | None, tag: str, default: float | None = None
+) -> tuple[float, str]:
+    """A hyper-parameter to fit with (default: the shipped model's, else ``default``) and the
+    suffix its models' names take: "" for the shipped value, else "-<tag><value>"."""
+    base = float(shipped[key] if default is None else shipped.get(key, default))
+    value = base if requested is None else float(requested)
+    return value, "" if value == base else f"-{tag}{value:g}"
+
+
 def slack_weight(shipped: dict, requested: float | None) -> tuple[float, str]:
-    """The slack weight C to fit with (default: the shipped model's) and the suffix its models'
-    names take: "" for the shipped C, else "-C<value>" (another C is another model)."""
-    C = float(shipped["C"]) if requested is None else float(requested)
-    return C, "" if float(shipped["C"]) == C else f"-C{C:g}"
+    """The slack weight C to fit with and its models' name suffix ("-C<value>" if not shipped)."""
+    return _variant(shipped, "C", requested, "C")
 
 
 def margin_weight(shipped: dict, requested: float | None) -> tuple[float, str]:
-    """The margin scale to fit with (default: the shipped model's, else 1) and the suffix its
-    models' names take: "" for the shipped scale, else "-m<value>"."""
-    base = float(shipped.get("margin_scale", 1.0))
-    scale = base if requested is None else float(requested)
-    return scale, "" if scale == base else f"-m{scale:g}"
+    """The margin scale to fit with (a model from before it was recorded: 1) and its models'
+    name suffix ("-m<value>" if not shipped)."""
+    return _variant(shipped, "margin_scale", requested, "m", default=1.0)
 
 
 def _ordered(models: dict) -> list[str]:

@@ -93,13 +93,19 @@ def openblas_kernel() -> str | None:
     return None
 
 
+def unusual_blas(compiled: str, blas_kernel: str | None) -> str:
+    """', OpenBLAS <kernel>' where the kernel is not the usual one for the compiled-for width,
+    else ''."""
+    usual = USUAL_BLAS_KERNELS.get(compiled)
+    if blas_kernel is None or usual is None or blas_kernel in usual:
+        return ""
+    return f", OpenBLAS {blas_kernel}"
+
+
 def numeric_kind_of(compiled: str, blas_kernel: str | None) -> str:
     """The numeric kind of a (compiled-for width, OpenBLAS kernel) pair: the width alone where
     the kernel is the usual one for it, else both ('avx512, OpenBLAS Haswell')."""
-    usual = USUAL_BLAS_KERNELS.get(compiled)
-    if blas_kernel is None or usual is None or blas_kernel in usual:
-        return compiled
-    return f"{compiled}, OpenBLAS {blas_kernel}"
+    return compiled + unusual_blas(compiled, blas_kernel)
 
 
 def numeric_kind() -> str:
@@ -119,9 +125,7 @@ def machine_line() -> str:
     width = vector_width()
     target = compiled_for()
     kind = width if target == width else f"{width}, code compiled for {target}"
-    numeric = numeric_kind()
-    if numeric != target:
-        kind += numeric[len(target) :]
+    kind += unusual_blas(target, openblas_kernel())
     return f"{cpu_model()} ({kind}), {usable_cores()} cores{load}"
 
 
