@@ -7,7 +7,10 @@ compares every policy with its own matched-world outcomes on the same tasks (def
 committed whole Table I run on an AVX-512 EPYC, ``results/table1_shared_main``): success with
 Wilson 95 % intervals, the tasks the mismatch lost and gained, an exact sign test, which single
 factor hurts which policy most, and the trackers' errors per step. Writes ``OUT/summary.json`` and
-``OUT/robustness.png`` and prints a markdown table.
+``OUT/robustness.png`` and prints a markdown table. CPUs of two numeric kinds (AVX-512, AVX2) can
+choose other demos at near-ties, so ``--matched`` takes one folder per kind (comma-separated) and
+each setting pairs with the matched world its own kind ran; a setting paired across kinds is
+named in a note.
 
 Usage:
   .venv/bin/python bench/robustness.py run --out-dir results/robustness_main \\
@@ -35,7 +38,7 @@ from knotlab.core.experiments.robustness import (
     parse_study_settings,
     worst_factors,
 )
-from knotlab.core.machine import machine_line
+from knotlab.core.machine import machine_line, recorded_numeric_kind
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ("nn", "greedy", "la1x10", "la2x5", "oracle")
@@ -50,6 +53,34 @@ def _outcomes(path: Path) -> dict[str, dict[str, dict]]:
                 rec = json.loads(line)
                 out.setdefault(rec["policy"], {})[rec["task_id"]] = rec
     return out
+
+
+def _cpu_kinds(folder: Path) -> frozenset[str]:
+    """The numeric kinds of CPU that ran a bench folder's episodes; lines from before they named
+    it count as the kind its results.json's machine record names."""
+    results = folder / "results.json"
+    machine = json.loads(results.read_text()).get("machine", {}) if results.exists() else {}
+    fallback = recorded_numeric_kind(machine)
+    recs = (
+        r for by_task in _outcomes(folder / "outcomes.jsonl").values() for r in by_task.values()
+    )
+    return frozenset(r.get("numeric_kind", fallback) for r in recs)
+
+
+def _matched_folders(args: argparse.Namespace) -> list[tuple[Path, frozenset[str]]]:
+    """The --matched folders with the CPU kinds that ran each."""
+    folders = [Path(p) for p in str(args.matched).split(",") if p]
+    return [(f, _cpu_kinds(f)) for f in folders]
+
+
+def _matched_for(kinds: frozenset[str], matched: list[tuple[Path, frozenset[str]]]) -> Path:
+    """The matched world a setting pairs with: the one run on the setting's own CPU kind, else
+    the first (two CPU kinds can choose other demos at near-ties, so such pairs also differ
+    where the kinds do, not only by the setting)."""
+    for folder, its_kinds in matched:
+        if its_kinds == kinds:
+            return folder
+    return matched[0][0]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -93,23 +124,38 @@ def run(args: argparse.Namespace) -> int:
     return report(args)
 
 
-def _rows(args: argparse.Namespace) -> tuple[list[PairedRow], dict[str, dict], list[str]]:
-    matched = _outcomes(Path(args.matched) / "outcomes.jsonl")
+def _rows(
+    args: argparse.Namespace,
+) -> tuple[list[PairedRow], dict[str, dict], list[str], dict[str, str]]:
+    """The paired rows, the trackers' errors, the settings, and which matched world (and CPU
+    kinds) each setting was paired with."""
+    candidates = _matched_folders(args)
+    loaded: dict[Path, dict[str, dict[str, dict]]] = {}
     rows: list[PairedRow] = []
     tracker: dict[str, dict] = {}
     names = []
+    pairing: dict[str, str] = {}
+    baselines = {f.resolve() for f, _ in candidates}
     for folder in sorted(p for p in Path(args.out_dir).iterdir() if p.is_dir()):
         here = _outcomes(folder / "outcomes.jsonl")
-        if not here:
+        if not here or folder.resolve() in baselines:  # a matched world is not a setting
             continue
         names.append(folder.name)
+        kinds = _cpu_kinds(folder)
+        source = _matched_for(kinds, candidates)
+        matched = loaded.setdefault(source, _outcomes(source / "outcomes.jsonl"))
+        source_kinds = dict(candidates)[source]
+        pairing[folder.name] = f"{source} ({', '.join(sorted(kinds))}"
+        if kinds != source_kinds:
+            pairing[folder.name] += f" against {', '.join(sorted(source_kinds))}: not one CPU kind"
+        pairing[folder.name] += ")"
         for policy in sorted(here, key=lambda p: ORDER.index(p) if p in ORDER else 99):
             recs = list(here[policy].values())
             rows.append(paired_row(folder.name, policy, recs, matched.get(policy, {})))
             summary = _estimate_errors(recs)
             if summary:
                 tracker[f"{folder.name}/{policy}"] = summary
-    return rows, tracker, names
+    return rows, tracker, names, pairing
 
 
 def _estimate_errors(recs: list[dict]) -> dict:
@@ -197,11 +243,14 @@ def _member_use(args: argparse.Namespace) -> dict[str, dict]:
 
 def report(args: argparse.Namespace) -> int:
     """Print the comparison table, write summary.json and the plot."""
-    rows, tracker, names = _rows(args)
+    rows, tracker, names, pairing = _rows(args)
     if not rows:
         print(f"no results under {args.out_dir}")
         return 1
     print(f"\nAgainst the matched world ({args.matched}), each policy on the tasks both ran:\n")
+    for name in names:
+        if "not one CPU kind" in pairing[name]:
+            print(f"note: {name} is paired with {pairing[name]}")
     print("| setting | policy | n | success | 95 % Wilson | matched | change | lost | gained | p |")
     print("|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
     for r in rows:
@@ -266,6 +315,7 @@ def report(args: argparse.Namespace) -> int:
     out = Path(args.out_dir)
     summary = {
         "matched": str(args.matched),
+        "matched_by_setting": pairing,
         "settings": names,
         "rows": [
             {
@@ -349,7 +399,8 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument(
             "--matched",
             default=str(ROOT / "results" / "table1_shared_main"),
-            help="the matched world's bench folder (its outcomes.jsonl)",
+            help="the matched world's bench folders (their outcomes.jsonl), comma-separated: "
+            "each setting pairs with the one run on its own CPU kind, else the first",
         )
         if name == "run":
             p.add_argument("--settings", default="combined25,combined50,tracker")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import os
 import platform
+from collections.abc import Mapping
 from pathlib import Path
 
 
@@ -112,6 +113,27 @@ def numeric_kind() -> str:
     """The kind of CPU whose numbers this process makes to the last bit: the vector width numba
     compiles for, plus OpenBLAS's kernels where they are not that width's usual ones."""
     return numeric_kind_of(compiled_for(), openblas_kernel())
+
+
+def recorded_numeric_kind(machine: Mapping[str, object]) -> str:
+    """The numeric kind a `machine_info` record names: its own field where it has one, else its
+    compiled-for or vector width and first BLAS kernel, else the width whose usual kernel its
+    BLAS picked (records from before they named a width); 'unrecorded' where none of these is."""
+    if isinstance(machine.get("numeric_kind"), str):
+        return str(machine["numeric_kind"])
+    blas = machine.get("blas")
+    kernels = (
+        [str(b).split()[2] for b in blas if len(str(b).split()) > 2]
+        if isinstance(blas, list)
+        else []
+    )
+    width = machine.get("compiled_for") or machine.get("vector_width")
+    if isinstance(width, str):
+        return numeric_kind_of(width, kernels[0] if kernels else None)
+    for kind, usual in USUAL_BLAS_KERNELS.items():
+        if kernels and all(k in usual for k in kernels):
+            return kind
+    return "unrecorded"
 
 
 def machine_line() -> str:

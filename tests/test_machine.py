@@ -78,3 +78,19 @@ print("zmm" in asm, "ymm" in asm)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "True"], out.stdout + out.stderr
+
+
+def test_a_machine_record_names_its_numeric_kind_even_from_before_the_field():
+    from knotlab.core.machine import recorded_numeric_kind
+
+    haswell = ["openblas 0.3.30 Haswell (libscipy_openblas.so)"]
+    skylake = ["openblas 0.3.30 SkylakeX (libscipy_openblas.so)"]
+    assert recorded_numeric_kind({"numeric_kind": "avx2", "blas": skylake}) == "avx2"
+    assert recorded_numeric_kind({"compiled_for": "avx2", "vector_width": "avx512"}) == "avx2"
+    assert recorded_numeric_kind({"vector_width": "avx512", "blas": haswell}) == (
+        "avx512, OpenBLAS Haswell"
+    )
+    assert recorded_numeric_kind({"blas": skylake * 2}) == "avx512"  # only the kernels recorded
+    assert recorded_numeric_kind({"blas": haswell}) == "avx2"
+    assert recorded_numeric_kind({"blas": haswell + skylake}) == "unrecorded"
+    assert recorded_numeric_kind({}) == "unrecorded"

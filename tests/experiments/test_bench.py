@@ -26,6 +26,7 @@ from knotlab.core.experiments.bench import (
     wanted_pairs,
     wilson_interval,
 )
+from knotlab.core.machine import numeric_kind
 from tests.minilib import mini_library, write_mini_files, write_mini_labels
 
 pytestmark = pytest.mark.xdist_group("bench")
@@ -256,6 +257,7 @@ def test_bench_writes_results_table_and_chart(first_run, files):
     text = first_run["stdout"]
     assert "Table I" in text and "68.8%" in text and "oracle" in text
     assert first_run["summary"]["ran"] == 3 * N_TASKS
+    assert res["numeric_kinds"] == {numeric_kind(): 3 * N_TASKS}  # the CPU kind of every episode
 
 
 def test_rerun_runs_nothing_and_reports_the_same_outcomes(first_run, files, tmp_path, capsys):
@@ -572,3 +574,30 @@ def test_a_model_whose_features_do_not_fit_the_library_is_refused_before_any_epi
     err = capsys.readouterr().err
     assert "features do not match this library" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_resumed_on_another_kind_of_cpu_says_so_and_counts_each_kind(
+    first_run, files, tmp_path, capsys, caplog
+):
+    out = tmp_path / "out"
+    shutil.copytree(first_run["out"], out)
+    lines = (out / "outcomes.jsonl").read_text().splitlines(keepends=True)
+    assert all(json.loads(line)["numeric_kind"] == numeric_kind() for line in lines)
+    # Four episodes from another kind of machine, one from before lines named their kind, and
+    # the last episode still to run here.
+    recs = [json.loads(line) for line in lines[:-1]]
+    for r in recs[:4]:
+        r["numeric_kind"] = "avx9000"
+    del recs[4]["numeric_kind"]
+    (out / "outcomes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    with caplog.at_level("WARNING"):
+        assert cli.main(_bench_args(files, out)) == 0
+    assert _last_json(capsys)["ran"] == 1
+    warned = [r.getMessage() for r in caplog.records if "episodes run on" in r.getMessage()]
+    assert len(warned) == 1 and "avx9000" in warned[0] and "unrecorded" not in warned[0]
+    res = json.loads((out / "results.json").read_text())
+    assert res["numeric_kinds"] == {"avx9000": 4, numeric_kind(): 1, "unrecorded": 1}
+    caplog.clear()
+    with caplog.at_level("WARNING"):  # nothing left to run: nothing is mixed, nothing said
+        assert cli.main(_bench_args(files, out)) == 0
+    assert not [r for r in caplog.records if "episodes run on" in r.getMessage()]

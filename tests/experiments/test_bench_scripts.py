@@ -123,6 +123,45 @@ def test_robustness_report_pairs_settings_controls_and_robust_runs(project_root,
     assert (robust / "robustness.png").stat().st_size > 1000
 
 
+def test_robustness_report_pairs_each_setting_with_the_matched_world_of_its_cpu_kind(
+    project_root, tmp_path, capsys
+):
+    import json
+
+    robustness = load_bench_module(project_root, "robustness")
+    study = tmp_path / "study"
+    wide, narrow = tmp_path / "matched512", study / "nominal"  # the AVX2 baseline inside the study
+    for folder in (wide, narrow, study / "damping+10", study / "mass+10", study / "length+10"):
+        folder.mkdir(parents=True)
+
+    def write(folder, successes, kind=None, machine=None):
+        extra = {"numeric_kind": kind} if kind else {}
+        lines = [_line("la2x5", i, ok, **extra) for i, ok in enumerate(successes)]
+        (folder / "outcomes.jsonl").write_text("\n".join(lines) + "\n")
+        if machine:
+            (folder / "results.json").write_text(json.dumps({"machine": machine}))
+
+    # An old matched world whose lines name no kind: its results.json's BLAS kernels do.
+    write(wide, [True] * 4, machine={"blas": ["openblas 0.3.30 SkylakeX (libscipy_openblas.so)"]})
+    write(narrow, [True, True, False, False], kind="avx2")
+    write(study / "damping+10", [True, False, False, False], kind="avx2")
+    write(study / "mass+10", [True, True, True, False], kind="avx512")
+    write(study / "length+10", [False] * 4, kind="avx9000")
+    args = SimpleNamespace(out_dir=str(study), matched=f"{wide},{narrow}", robust_dir=None)
+    assert robustness.report(args) == 0
+    text = capsys.readouterr().out
+    assert "| damping+10 | la2x5 | 4 | 25.0 % | [4.6, 69.9] | 50.0 % | -25.0 |" in text  # AVX2's
+    assert "| mass+10 | la2x5 | 4 | 75.0 % | [30.1, 95.4] | 100.0 % | -25.0 |" in text  # AVX-512's
+    assert "| length+10 | la2x5 | 4 | 0.0 % | [0.0, 49.0] | 100.0 % | -100.0 |" in text
+    notes = [line for line in text.splitlines() if line.startswith("note:")]
+    assert notes == [
+        f"note: length+10 is paired with {wide} (avx9000 against avx512: not one CPU kind)"
+    ]
+    assert "| nominal |" not in text  # a matched world is not a setting
+    pairing = json.loads((study / "summary.json").read_text())["matched_by_setting"]
+    assert pairing["damping+10"] == f"{narrow} (avx2)"
+
+
 def _scores(main: float, hard: float, top1: float = 0.5) -> dict:
     return {
         lv: {"greedy_success": s, "starts": 60, "top1": top1, "value_auc": 0.9, "n_states": 175}

@@ -19,6 +19,7 @@ import numpy as np
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.execution.memo import OutcomeMemo
+from knotlab.core.machine import numeric_kind
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.world.estimate import EstimatorKind
@@ -138,7 +139,11 @@ class BenchWorker:
                     w.close()
             self.world = RopeWorld()
             self._worlds, self._model_worlds = {NOMINAL: self.world}, {}
-        out.update(task_index=job.task_index, seed=job.seed, pid=os.getpid())
+        # The CPU kind whose numbers this episode is, to the last bit: a folder resumed on
+        # another kind can choose other demos at near-ties, and its results count each kind.
+        out.update(
+            task_index=job.task_index, seed=job.seed, pid=os.getpid(), numeric_kind=numeric_kind()
+        )
         if self.node is not None:
             out["node"] = self.node  # which Ray node ran it: per-node throughput
         return out

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,14 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
         confidence_level=float(2 * norm.cdf(z) - 1), method="wilson"
     )
     return (float(ci.low), float(ci.high))
+
+
+UNRECORDED_KIND = "unrecorded"  # episodes from before outcome lines named their CPU's kind
+
+
+def numeric_kinds(records: Iterable[Mapping]) -> dict[str, int]:
+    """How many of ``records`` each numeric kind of CPU ran, 'unrecorded' for older lines."""
+    return dict(sorted(Counter(r.get("numeric_kind", UNRECORDED_KIND) for r in records).items()))
 
 
 def summarize(policy: str, records: Sequence[dict], reference: Mapping[str, float]) -> dict:

@@ -38,11 +38,13 @@ from knotlab.core.experiments.bench.report import (
     RESULTS_FILE,
     RESULTS_FORMAT,
     RESULTS_VERSION,
+    UNRECORDED_KIND,
+    numeric_kinds,
     package_versions,
     plot_table,
     summarize,
 )
-from knotlab.core.machine import machine_info
+from knotlab.core.machine import machine_info, numeric_kind
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.policies import policy_config
 from knotlab.core.selection.qmodel import QModel
@@ -156,6 +158,20 @@ def plan_jobs(
     ]
 
 
+def _warn_of_other_kinds(out: Path, finished: Iterable[Mapping]) -> None:
+    """Say so when the episodes about to run join ones another kind of CPU made."""
+    here = numeric_kind()
+    others = [k for k in numeric_kinds(finished) if k not in (here, UNRECORDED_KIND)]
+    if others:
+        log.warning(
+            "%s holds episodes run on %s; this machine is %s, whose last bits can choose other "
+            "demos at near-ties: results.json counts the episodes of each kind",
+            out,
+            " and ".join(others),
+            here,
+        )
+
+
 def run_bench(
     out_dir: str | Path,
     *,
@@ -247,6 +263,8 @@ def run_bench(
     )
     skipped = len(wanted_pairs(tasks, policies, first)) - len(jobs)
     log.info("%d episodes to run, %d already finished", len(jobs), skipped)
+    if jobs:
+        _warn_of_other_kinds(out, finished.values())
     ran = 0
     if jobs:
         spec = WorkerSpec(library, model if learned else None, None, world, agent_model, estimator)
@@ -310,6 +328,9 @@ def run_bench(
         },
         "packages": package_versions(),
         "machine": machine_info(),
+        # Which CPU kinds ran the episodes of this table (one, unless the folder was resumed on
+        # another kind of machine or ran on a mixed cluster).
+        "numeric_kinds": numeric_kinds(r for recs in outcomes.values() for r in recs),
         "engine": engine,
         "workers": workers,
         "episodes_run": ran,
