@@ -79,19 +79,32 @@ USUAL_BLAS_KERNELS = {
 }
 
 
+def _blas_rank(filepath: str) -> int:
+    """How surely a loaded OpenBLAS is the one the numbers come from: NumPy's own (0), another
+    SciPy-OpenBLAS build, as SciPy's (1), any other (2). Solver wheels bundle their own OpenBLAS
+    (SCS ships 0.3.15, which calls a Zen CPU's kernels 'Zen' where NumPy's says 'Haswell'), and
+    which of them loads first depends on what a process imported before."""
+    path = Path(filepath)
+    if "numpy" in path.parent.name:
+        return 0
+    return 1 if path.name.startswith("libscipy_openblas") else 2
+
+
 @functools.lru_cache(maxsize=1)
 def openblas_kernel() -> str | None:
-    """The kernel family the loaded OpenBLAS picked ('SkylakeX', 'Haswell'), None without one."""
+    """The kernel family NumPy's OpenBLAS picked ('SkylakeX', 'Haswell'), None without one."""
     import numpy  # noqa: F401  (loads the OpenBLAS whose kernels the numbers come from)
 
     try:
         from threadpoolctl import threadpool_info
     except ImportError:
         return None
-    for info in threadpool_info():
-        if info.get("internal_api") == "openblas" and info.get("architecture"):
-            return str(info["architecture"])
-    return None
+    found = [
+        (_blas_rank(str(info.get("filepath") or "")), str(info["architecture"]))
+        for info in threadpool_info()
+        if info.get("internal_api") == "openblas" and info.get("architecture")
+    ]
+    return min(found)[1] if found else None
 
 
 def unusual_blas(compiled: str, blas_kernel: str | None) -> str:
@@ -117,16 +130,18 @@ def numeric_kind() -> str:
 
 def recorded_numeric_kind(machine: Mapping[str, object]) -> str:
     """The numeric kind a `machine_info` record names: its own field where it has one, else its
-    compiled-for or vector width and first BLAS kernel, else the width whose usual kernel its
+    compiled-for or vector width and NumPy's BLAS kernel, else the width whose usual kernel its
     BLAS picked (records from before they named a width); 'unrecorded' where none of these is."""
     if isinstance(machine.get("numeric_kind"), str):
         return str(machine["numeric_kind"])
     blas = machine.get("blas")
-    kernels = (
-        [str(b).split()[2] for b in blas if len(str(b).split()) > 2]
-        if isinstance(blas, list)
-        else []
+    # 'openblas 0.3.30 Haswell (libscipy_openblas-6cdc3b4a.so)': NumPy's and SciPy's builds first
+    entries = sorted(
+        (_blas_rank(str(b).split()[-1].strip("()")), str(b).split()[2])
+        for b in (blas if isinstance(blas, list) else [])
+        if len(str(b).split()) > 3
     )
+    kernels = [k for rank, k in entries if rank == entries[0][0]] if entries else []
     width = machine.get("compiled_for") or machine.get("vector_width")
     if isinstance(width, str):
         return numeric_kind_of(width, kernels[0] if kernels else None)

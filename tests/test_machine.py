@@ -94,3 +94,46 @@ def test_a_machine_record_names_its_numeric_kind_even_from_before_the_field():
     assert recorded_numeric_kind({"blas": haswell}) == "avx2"
     assert recorded_numeric_kind({"blas": haswell + skylake}) == "unrecorded"
     assert recorded_numeric_kind({}) == "unrecorded"
+
+
+def test_the_blas_kernel_is_numpys_whatever_other_openblas_loaded_first(monkeypatch):
+    import threadpoolctl
+
+    solver = "/venv/site-packages/scs.libs/libopenblas-r0-11edc3fa.3.15.so"  # SCS bundles one
+    infos = [
+        {"internal_api": "openblas", "architecture": "Zen", "filepath": solver},
+        {
+            "internal_api": "openblas",
+            "architecture": "Haswell",
+            "filepath": "/venv/site-packages/scipy.libs/libscipy_openblas-6cdc3b4a.so",
+        },
+        {
+            "internal_api": "openblas",
+            "architecture": "SkylakeX",
+            "filepath": "/venv/site-packages/numpy.libs/libscipy_openblas64_-32a4b2a6.so",
+        },
+    ]
+    monkeypatch.setattr(threadpoolctl, "threadpool_info", lambda: list(infos))
+    kernel = machine.openblas_kernel.__wrapped__  # uncached
+    assert kernel() == "SkylakeX"  # NumPy's, before SciPy's and the solver's
+    del infos[2]
+    assert kernel() == "Haswell"  # then SciPy's build
+    del infos[1]
+    assert kernel() == "Zen"  # any OpenBLAS at all, last
+    record = {"vector_width": "avx2", "blas": [f"openblas 0.3.15 Zen ({solver.split('/')[-1]})"]}
+    record["blas"].append("openblas 0.3.30 Haswell (libscipy_openblas-6cdc3b4a.so)")
+    assert machine.recorded_numeric_kind(record) == "avx2"
+    assert machine.recorded_numeric_kind({"blas": record["blas"]}) == "avx2"
+
+
+def test_the_numeric_kind_does_not_depend_on_what_a_process_imported_first() -> None:
+    """A solver's bundled OpenBLAS loaded before NumPy's (in fresh processes)."""
+    pytest.importorskip("scs")
+    code = "from knotlab.core import machine; print(machine.numeric_kind())"
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", prefix + code], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        for prefix in ("", "import scs\n")
+    ]
+    assert runs[0] == runs[1] == machine.numeric_kind()
