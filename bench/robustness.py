@@ -4,7 +4,8 @@ Runs each study setting (a world, and the agent's state estimator; the agent alw
 with the nominal physics its library and model were made in) as a resumable bench run in
 ``OUT/<setting>/`` (`knotlab bench --world-params ... --estimator ...`, the same files), then
 compares every policy with its own matched-world outcomes on the same tasks (default: the
-committed whole Table I run on an AVX-512 EPYC, ``results/table1_shared_main``): success with
+committed whole Table I run on an AVX-512 EPYC, ``results/table1_shared_main``, and the matched
+world run on an AVX2 one, ``results/robustness_families_avx2/nominal``): success with
 Wilson 95 % intervals, the tasks the mismatch lost and gained, an exact sign test, which single
 factor hurts which policy most, and the trackers' errors per step. Writes ``OUT/summary.json`` and
 ``OUT/robustness.png`` and prints a markdown table. CPUs of two numeric kinds (AVX-512, AVX2) can
@@ -398,7 +399,11 @@ def main(argv: list[str] | None = None) -> int:
             )
         p.add_argument(
             "--matched",
-            default=str(ROOT / "results" / "table1_shared_main"),
+            # The committed matched worlds: AVX-512 (the whole Table I) and AVX2 (200 tasks)
+            default=",".join(
+                str(ROOT / "results" / name)
+                for name in ("table1_shared_main", "robustness_families_avx2/nominal")
+            ),
             help="the matched world's bench folders (their outcomes.jsonl), comma-separated: "
             "each setting pairs with the one run on its own CPU kind, else the first",
         )
