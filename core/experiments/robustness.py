@@ -148,14 +148,27 @@ def paired_row(
 
 
 def worst_factors(rows: Sequence[PairedRow]) -> dict[str, tuple[str, float]]:
-    """For each policy, the single-factor setting that cost it the most points (and how many)."""
-    worst: dict[str, tuple[str, float]] = {}
+    """For each policy, the single-factor setting that cost it the most points (and how many).
+
+    Only settings run on as many tasks as the most of their level (the same size of mismatch)
+    for that policy compete: a setting still part-run has a few tasks whose change ranks by
+    chance (one task lost of two is -50 points).
+    """
+    single: list[tuple[PairedRow, float]] = []
     for row in rows:
         try:
-            factor = parse_setting(row.setting).factor
+            setting = parse_setting(row.setting)
         except InvalidInputError:
             continue  # the tracker, a control
-        if factor is None or row.n == 0:
+        if setting.factor is None or row.n == 0:
+            continue
+        single.append((row, round(abs(setting.scale - 1.0), 6)))
+    most: dict[tuple[str, float], int] = {}
+    for row, level in single:
+        most[(row.policy, level)] = max(most.get((row.policy, level), 0), row.n)
+    worst: dict[str, tuple[str, float]] = {}
+    for row, level in single:
+        if row.n < most[(row.policy, level)]:
             continue
         if row.policy not in worst or row.change_points < worst[row.policy][1]:
             worst[row.policy] = (row.setting, row.change_points)

@@ -66,3 +66,17 @@ def test_the_worst_factor_is_the_single_factor_that_cost_most():
         paired_row("tracker", "greedy", [_rec(i, False) for i in range(4)], matched),
     ]
     assert worst_factors(rows) == {"greedy": ("grip_force-50", -75.0)}
+
+
+def test_a_part_run_setting_does_not_rank_as_the_worst_factor_by_its_few_tasks():
+    matched = {f"t{i}": _rec(i, True) for i in range(8)}
+    rows = [
+        paired_row("radius-10", "nn", [_rec(i, i > 1) for i in range(8)], matched),  # -25
+        paired_row("mass-10", "nn", [_rec(i, i > 3) for i in range(8)], matched),  # -50
+        paired_row("table_friction+10", "nn", [_rec(0, False)], matched),  # 1 task: -100
+        paired_row("length-50", "nn", [_rec(i, i > 2) for i in range(4)], matched),  # -75, 4 tasks
+    ]
+    # Each level's settings compete at that level's most tasks: the 1-task ±10 % setting is
+    # left out, the ±50 % one on 4 tasks (all its level ran) is not.
+    assert worst_factors(rows) == {"nn": ("length-50", -75.0)}
+    assert worst_factors(rows[:3]) == {"nn": ("mass-10", -50.0)}
