@@ -31,6 +31,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from knotlab.core.experiments.robustness import (
@@ -56,32 +57,59 @@ def _outcomes(path: Path) -> dict[str, dict[str, dict]]:
     return out
 
 
-def _cpu_kinds(folder: Path) -> frozenset[str]:
-    """The numeric kinds of CPU that ran a bench folder's episodes; lines from before they named
-    it count as the kind its results.json's machine record names."""
+@dataclass(frozen=True)
+class _Matched:
+    """One matched world: its folder, outcomes and the CPU kinds that ran them."""
+
+    folder: Path
+    outcomes: dict[str, dict[str, dict]]
+    kinds: frozenset[str]
+
+
+@dataclass(frozen=True)
+class _Pairing:
+    """Which matched world a setting was paired with, and the CPU kinds on either side."""
+
+    matched: _Matched
+    kinds: frozenset[str]
+
+    @property
+    def across_kinds(self) -> bool:
+        """Paired with another kind's episodes (their pairs also differ where the kinds do)."""
+        return self.kinds != self.matched.kinds
+
+    def describe(self) -> str:
+        """'FOLDER (avx2)', or 'FOLDER (avx2 against avx512: not one CPU kind)'."""
+        text = f"{self.matched.folder} ({', '.join(sorted(self.kinds))}"
+        if self.across_kinds:
+            text += f" against {', '.join(sorted(self.matched.kinds))}: not one CPU kind"
+        return text + ")"
+
+
+def _cpu_kinds(folder: Path, outcomes: dict[str, dict[str, dict]]) -> frozenset[str]:
+    """The numeric kinds of CPU that ran a bench folder's episodes (``outcomes``, as `_outcomes`
+    read them); lines from before they named it count as the kind its results.json names."""
     results = folder / "results.json"
     machine = json.loads(results.read_text()).get("machine", {}) if results.exists() else {}
     fallback = recorded_numeric_kind(machine)
-    recs = (
-        r for by_task in _outcomes(folder / "outcomes.jsonl").values() for r in by_task.values()
-    )
+    recs = (r for by_task in outcomes.values() for r in by_task.values())
     return frozenset(r.get("numeric_kind", fallback) for r in recs)
 
 
-def _matched_folders(args: argparse.Namespace) -> list[tuple[Path, frozenset[str]]]:
-    """The --matched folders with the CPU kinds that ran each."""
-    folders = [Path(p) for p in str(args.matched).split(",") if p]
-    return [(f, _cpu_kinds(f)) for f in folders]
+def _matched_worlds(args: argparse.Namespace) -> list[_Matched]:
+    """The --matched folders, read once, with the CPU kinds that ran each."""
+    worlds = []
+    for folder in (Path(p) for p in str(args.matched).split(",") if p):
+        outcomes = _outcomes(folder / "outcomes.jsonl")
+        worlds.append(_Matched(folder, outcomes, _cpu_kinds(folder, outcomes)))
+    return worlds
 
 
-def _matched_for(kinds: frozenset[str], matched: list[tuple[Path, frozenset[str]]]) -> Path:
+def _pair(kinds: frozenset[str], worlds: list[_Matched]) -> _Pairing:
     """The matched world a setting pairs with: the one run on the setting's own CPU kind, else
-    the first (two CPU kinds can choose other demos at near-ties, so such pairs also differ
-    where the kinds do, not only by the setting)."""
-    for folder, its_kinds in matched:
-        if its_kinds == kinds:
-            return folder
-    return matched[0][0]
+    the first (two CPU kinds can choose other demos at near-ties)."""
+    own = next((w for w in worlds if w.kinds == kinds), worlds[0])
+    return _Pairing(own, kinds)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -127,29 +155,22 @@ def run(args: argparse.Namespace) -> int:
 
 def _rows(
     args: argparse.Namespace,
-) -> tuple[list[PairedRow], dict[str, dict], list[str], dict[str, str]]:
+) -> tuple[list[PairedRow], dict[str, dict], list[str], dict[str, _Pairing]]:
     """The paired rows, the trackers' errors, the settings, and which matched world (and CPU
     kinds) each setting was paired with."""
-    candidates = _matched_folders(args)
-    loaded: dict[Path, dict[str, dict[str, dict]]] = {}
+    worlds = _matched_worlds(args)
     rows: list[PairedRow] = []
     tracker: dict[str, dict] = {}
     names = []
-    pairing: dict[str, str] = {}
-    baselines = {f.resolve() for f, _ in candidates}
+    pairing: dict[str, _Pairing] = {}
+    baselines = {w.folder.resolve() for w in worlds}
     for folder in sorted(p for p in Path(args.out_dir).iterdir() if p.is_dir()):
         here = _outcomes(folder / "outcomes.jsonl")
         if not here or folder.resolve() in baselines:  # a matched world is not a setting
             continue
         names.append(folder.name)
-        kinds = _cpu_kinds(folder)
-        source = _matched_for(kinds, candidates)
-        matched = loaded.setdefault(source, _outcomes(source / "outcomes.jsonl"))
-        source_kinds = dict(candidates)[source]
-        pairing[folder.name] = f"{source} ({', '.join(sorted(kinds))}"
-        if kinds != source_kinds:
-            pairing[folder.name] += f" against {', '.join(sorted(source_kinds))}: not one CPU kind"
-        pairing[folder.name] += ")"
+        pairing[folder.name] = _pair(_cpu_kinds(folder, here), worlds)
+        matched = pairing[folder.name].matched.outcomes
         for policy in sorted(here, key=lambda p: ORDER.index(p) if p in ORDER else 99):
             recs = list(here[policy].values())
             rows.append(paired_row(folder.name, policy, recs, matched.get(policy, {})))
@@ -250,8 +271,8 @@ def report(args: argparse.Namespace) -> int:
         return 1
     print(f"\nAgainst the matched world ({args.matched}), each policy on the tasks both ran:\n")
     for name in names:
-        if "not one CPU kind" in pairing[name]:
-            print(f"note: {name} is paired with {pairing[name]}")
+        if pairing[name].across_kinds:
+            print(f"note: {name} is paired with {pairing[name].describe()}")
     print("| setting | policy | n | success | 95 % Wilson | matched | change | lost | gained | p |")
     print("|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
     for r in rows:
@@ -316,7 +337,7 @@ def report(args: argparse.Namespace) -> int:
     out = Path(args.out_dir)
     summary = {
         "matched": str(args.matched),
-        "matched_by_setting": pairing,
+        "matched_by_setting": {name: p.describe() for name, p in pairing.items()},
         "settings": names,
         "rows": [
             {

@@ -128,6 +128,9 @@ def numeric_kind() -> str:
     return numeric_kind_of(compiled_for(), openblas_kernel())
 
 
+UNRECORDED_KIND = "unrecorded"  # a record from before records named the CPU's numeric kind
+
+
 def recorded_numeric_kind(machine: Mapping[str, object]) -> str:
     """The numeric kind a `machine_info` record names: its own field where it has one, else its
     compiled-for or vector width and NumPy's BLAS kernel, else the width whose usual kernel its
@@ -148,7 +151,7 @@ def recorded_numeric_kind(machine: Mapping[str, object]) -> str:
     for kind, usual in USUAL_BLAS_KERNELS.items():
         if kernels and all(k in usual for k in kernels):
             return kind
-    return "unrecorded"
+    return UNRECORDED_KIND
 
 
 def machine_line() -> str:

@@ -14,6 +14,7 @@ import numpy as np
 
 from knotlab.core.atomic import atomic_path
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.machine import UNRECORDED_KIND
 from knotlab.core.tasks import DEFAULT_TASK, get_task
 
 RESULTS_FORMAT = "knotlab-bench-results"
@@ -38,9 +39,6 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
         confidence_level=float(2 * norm.cdf(z) - 1), method="wilson"
     )
     return (float(ci.low), float(ci.high))
-
-
-UNRECORDED_KIND = "unrecorded"  # episodes from before outcome lines named their CPU's kind
 
 
 def numeric_kinds(records: Iterable[Mapping]) -> dict[str, int]:

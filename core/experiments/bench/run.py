@@ -38,13 +38,12 @@ from knotlab.core.experiments.bench.report import (
     RESULTS_FILE,
     RESULTS_FORMAT,
     RESULTS_VERSION,
-    UNRECORDED_KIND,
     numeric_kinds,
     package_versions,
     plot_table,
     summarize,
 )
-from knotlab.core.machine import machine_info, numeric_kind
+from knotlab.core.machine import UNRECORDED_KIND, machine_info, numeric_kind
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.policies import policy_config
 from knotlab.core.selection.qmodel import QModel
@@ -263,10 +262,9 @@ def run_bench(
     )
     skipped = len(wanted_pairs(tasks, policies, first)) - len(jobs)
     log.info("%d episodes to run, %d already finished", len(jobs), skipped)
-    if jobs:
-        _warn_of_other_kinds(out, finished.values())
     ran = 0
     if jobs:
+        _warn_of_other_kinds(out, finished.values())
         spec = WorkerSpec(library, model if learned else None, None, world, agent_model, estimator)
         with outcome_log.open() as fh:
 
