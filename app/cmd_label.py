@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from knotlab.app.options import (
     add_db_argument,
@@ -23,7 +25,11 @@ from knotlab.app.options import (
     reads,
     task_of,
     task_set_file,
+    warn_of_other_kinds,
 )
+
+if TYPE_CHECKING:
+    from knotlab.core.selection.labels import LabelledExecution
 
 SEARCH_POLICIES = ("la1x10", "la2x5")  # the lookaheads of Table I
 
@@ -147,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         stored = store.training_executions(include_unfinished=True)
         done = labelled_task_ids(selected, stored, where=args.db)
         todo = [t for t in selected if t.task_id not in done]
+        _warn_if_mixing(args.db, stored, todo)
         store.register_library(library.content_hash(), task=task_of(args))
         store.add_labeller("oracle", "oracle")
         print(
@@ -206,12 +213,14 @@ def _run_policy_states(args: argparse.Namespace, library_path, library, selected
     states = dead = reached_knot = 0
     with open_store(args.db, persistent=True) as store:
         store.check_task(task_of(args))
-        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        executions = store.training_executions(include_unfinished=True)
+        stored = {e.execution_id for e in executions}
         prefix = {
             t.task_id: policy_execution_prefix(args.from_policy, args.round, t.task_id)
             for t in selected
         }
         todo = [t for t in selected if not any(i.startswith(prefix[t.task_id]) for i in stored)]
+        _warn_if_mixing(args.db, executions, todo)
         store.register_library(library.content_hash(), task=task_of(args))
         store.add_labeller("oracle", "oracle")
         print(
@@ -255,6 +264,15 @@ def _run_policy_states(args: argparse.Namespace, library_path, library, selected
             )
         )
     return 0
+
+
+def _warn_if_mixing(db: str, executions: Sequence[LabelledExecution], todo: Sequence) -> None:
+    """Warn when the labels about to be made join labels another numeric kind of CPU made."""
+    from knotlab.core.machine import kind_of_record
+
+    if todo:
+        kinds = (kind_of_record(e.metadata) for e in executions)
+        warn_of_other_kinds(db, kinds, "labels")
 
 
 def _append_tries(path, tries) -> None:
@@ -307,8 +325,10 @@ def _run_search(args: argparse.Namespace, library_path, library, selected: list)
     labelled = states = 0
     with open_store(args.db, persistent=True) as store:
         store.check_task(task_of(args))
-        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        executions = store.training_executions(include_unfinished=True)
+        stored = {e.execution_id for e in executions}
         todo = [t for t in selected if search_execution_id(args.search, t.task_id) not in stored]
+        _warn_if_mixing(args.db, executions, todo)
         store.register_library(library.content_hash(), task=task_of(args))
         store.add_labeller(f"search-{args.search}", "oracle")
         print(
@@ -379,8 +399,10 @@ def _run_policy_search(
     reached = labelled = states = knots = 0
     with open_store(args.db, persistent=True) as store:
         store.check_task(task_of(args))
-        stored = {e.execution_id for e in store.training_executions(include_unfinished=True)}
+        executions = store.training_executions(include_unfinished=True)
+        stored = {e.execution_id for e in executions}
         todo = [t for t in selected if not any(i.startswith(prefix(t.task_id)) for i in stored)]
+        _warn_if_mixing(args.db, executions, todo)
         store.register_library(library.content_hash(), task=task_of(args))
         store.add_labeller(f"search-{args.search}", "oracle")
         print(

@@ -19,6 +19,7 @@ from knotlab.app.options import (
     db_url,
     library_file,
     load_library,
+    warn_of_other_kinds,
 )
 
 LabelFormat = Literal["jsonl", "csv", "h5"]
@@ -147,8 +148,10 @@ def _tries(args: argparse.Namespace) -> int:
     # foreign line is named by read_tries rather than silently dropped).
     out = check_output(args.out, force=args.force, kind="tries file", suffixes=(), resume=own_tries)
     library = load_library(library_file(args), args)
-    done = set(read_tries(out)) if out.exists() else set()
-    jobs = try_jobs(executions, args.top, done)
+    done = read_tries(out) if out.exists() else {}
+    jobs = try_jobs(executions, args.top, set(done))
+    if jobs:
+        warn_of_other_kinds(str(out), (t.numeric_kind for t in done.values()), "tries")
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("a", encoding="utf-8") as fh:
         for rec in try_candidates(

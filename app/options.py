@@ -29,7 +29,8 @@ import argparse
 import math
 import os
 import re
-from collections.abc import Callable, Collection, Sequence
+import sys
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -537,3 +538,13 @@ def check_output(
         made = "is not this command's own output to resume" if resume is not None else "exists"
         raise OutputPathError(f"{flag} {out} {made}; write elsewhere or pass --force to replace it")
     return out
+
+
+def warn_of_other_kinds(where: str, kinds: Iterable[str], what: str) -> None:
+    """Print a warning when work about to be added to ``where`` joins ``what`` another numeric
+    kind of CPU made (its near-ties can go the other way; the records say which is which)."""
+    from knotlab.core.machine import other_kinds_warning
+
+    warning = other_kinds_warning(where, kinds, what)
+    if warning is not None:
+        print(f"warning: {warning}", file=sys.stderr)

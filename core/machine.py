@@ -6,7 +6,8 @@ from __future__ import annotations
 import functools
 import os
 import platform
-from collections.abc import Mapping
+from collections import Counter
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 
@@ -129,14 +130,41 @@ def numeric_kind() -> str:
 
 
 UNRECORDED_KIND = "unrecorded"  # a record from before records named the CPU's numeric kind
+# The field under which a record (an episode's outcome line, a labelled execution's metadata, a
+# tried state) names the numeric kind of the CPU that computed it.
+NUMERIC_KIND_KEY = "numeric_kind"
+
+
+def kind_of_record(record: Mapping[str, object]) -> str:
+    """The numeric kind a record names ('unrecorded' where it names none)."""
+    return str(record.get(NUMERIC_KIND_KEY, UNRECORDED_KIND))
+
+
+def numeric_kinds(records: Iterable[Mapping[str, object]]) -> dict[str, int]:
+    """How many of ``records`` each numeric kind of CPU made, 'unrecorded' for older ones."""
+    return dict(sorted(Counter(kind_of_record(r) for r in records).items()))
+
+
+def other_kinds_warning(where: str, kinds: Iterable[str], what: str) -> str | None:
+    """A sentence when ``kinds`` (those of the ``what`` already in ``where``) name another
+    numeric kind than this machine's (unrecorded ones aside), else None: work added here can
+    choose other demos at near-ties than the same work there."""
+    here = numeric_kind()
+    others = sorted({k for k in kinds if k not in (here, UNRECORDED_KIND)})
+    if not others:
+        return None
+    return (
+        f"{where} holds {what} made on {' and '.join(others)}; this machine is {here}, whose "
+        "last bits can choose other demos at near-ties"
+    )
 
 
 def recorded_numeric_kind(machine: Mapping[str, object]) -> str:
     """The numeric kind a `machine_info` record names: its own field where it has one, else its
     compiled-for or vector width and NumPy's BLAS kernel, else the width whose usual kernel its
     BLAS picked (records from before they named a width); 'unrecorded' where none of these is."""
-    if isinstance(machine.get("numeric_kind"), str):
-        return str(machine["numeric_kind"])
+    if isinstance(machine.get(NUMERIC_KIND_KEY), str):
+        return str(machine[NUMERIC_KIND_KEY])
     blas = machine.get("blas")
     # 'openblas 0.3.30 Haswell (libscipy_openblas-6cdc3b4a.so)': NumPy's and SciPy's builds first
     entries = sorted(

@@ -96,6 +96,19 @@ def test_a_machine_record_names_its_numeric_kind_even_from_before_the_field():
     assert recorded_numeric_kind({}) == "unrecorded"
 
 
+def test_records_of_another_kind_are_counted_and_named_and_unrecorded_ones_are_not(monkeypatch):
+    records = [{"numeric_kind": "avx512"}, {"numeric_kind": "avx2"}, {}, {"numeric_kind": "avx2"}]
+    assert machine.numeric_kinds(records) == {"avx2": 2, "avx512": 1, "unrecorded": 1}
+    monkeypatch.setattr(machine, "numeric_kind", lambda: "avx2")
+    kinds = [machine.kind_of_record(r) for r in records]
+    assert machine.other_kinds_warning("labels.db", kinds, "labels") == (
+        "labels.db holds labels made on avx512; this machine is avx2, whose last bits can "
+        "choose other demos at near-ties"
+    )
+    assert machine.other_kinds_warning("x", ["avx2", "unrecorded"], "tries") is None
+    assert machine.other_kinds_warning("x", [], "tries") is None
+
+
 def test_the_blas_kernel_is_numpys_whatever_other_openblas_loaded_first(monkeypatch):
     import threadpoolctl
 

@@ -43,6 +43,7 @@ from knotlab.app.web.session_records import (
 from knotlab.core.execution.apply import ActionOutcome
 from knotlab.core.experiments.labeller import start_rope_hash
 from knotlab.core.failures import FailureKind
+from knotlab.core.machine import NUMERIC_KIND_KEY, numeric_kind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.registration import ScanResult
 from knotlab.core.selection.labels import DeadEndState, LabelledStep
@@ -176,6 +177,9 @@ class LabelSession:
             self.labeller,
             library_hash=self.res.library_hash,
             source="human",
+            # The CPU kind whose numbers rank this episode's states: resumed on another kind,
+            # a near-tie can rank two demos the other way (each label keeps what was shown).
+            metadata={NUMERIC_KIND_KEY: numeric_kind()},
             prefer=self.prefer() if self.prefer is not None else (),
             overlap=self.res.overlap,
             exclude=sorted(self._skipped | (self._passed_over if self.model_mode else set())),

@@ -34,6 +34,7 @@ import numpy as np
 
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.hashing import ContentHash
+from knotlab.core.machine import NUMERIC_KIND_KEY, numeric_kind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import DeadEndState, LabelledExecution, LabelledStep
@@ -261,6 +262,7 @@ def label_task(
             "sim_budget": params.sim_budget,
             "budget_exhausted": search.exhausted,
             START_HASH_KEY: start_rope_hash(start_nodes_k3),
+            NUMERIC_KIND_KEY: numeric_kind(),
         },
     )
     return OracleResult(

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from knotlab.core.experiments.labeller import OracleParams, oracle_from, start_rope_hash
+from knotlab.core.machine import NUMERIC_KIND_KEY, numeric_kind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import REACHED_BY, LabelledExecution
@@ -155,6 +156,7 @@ def label_policy_states(
                     "budget_exhausted": exhausted,
                     "candidates": params.candidates,
                     "sim_budget": params.sim_budget,
+                    NUMERIC_KIND_KEY: numeric_kind(),
                 },
             )
         )

@@ -32,6 +32,7 @@ import numpy as np
 from knotlab.core.demos.tasks import RopeTask
 from knotlab.core.experiments.episode import EpisodeRecord, run_episode
 from knotlab.core.experiments.policy_states import reached_by, roll_out
+from knotlab.core.machine import NUMERIC_KIND_KEY, numeric_kind
 from knotlab.core.outcomes import StepOutcome
 from knotlab.core.parallel import PerProcess
 from knotlab.core.selection.labels import REACHED_BY, LabelledExecution, LabelledStep
@@ -107,10 +108,11 @@ def floor_tries(
     """Per step, the root candidates that did not advance from the stage of the state the step
     began in (``stages_before``: the task's stage of each labelled state's rope)."""
     out = []
+    kind = numeric_kind()
     for step, (stage_before, tried) in enumerate(zip(stages_before, roots, strict=True)):
         full = StateTries(execution_id, step, int(stage_before), tuple(tried))
         kept = tuple(t for t in full.tried if not full.advanced(t))
-        out.append(StateTries(execution_id, step, int(stage_before), kept))
+        out.append(StateTries(execution_id, step, int(stage_before), kept, kind))
     return out
 
 
@@ -159,6 +161,7 @@ def _search_label(
         "labelled_by": {"policy": agent.name, "model": model_hash},
         "search_knotted": bool(record.success),
         "search_chosen": [s.chosen_key for s in record.steps],
+        NUMERIC_KIND_KEY: numeric_kind(),
     }
     execution = execution_from_episode(
         record,

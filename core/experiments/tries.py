@@ -17,6 +17,7 @@ import numpy as np
 
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.machine import numeric_kind
 from knotlab.core.parallel import PerProcess, imap_processes
 from knotlab.core.selection.labels import LabelledExecution
 from knotlab.core.selection.tries import StateTries, TriedDemo
@@ -103,7 +104,7 @@ class _Trier:
             self.world.restore(start)
             out = self.agent.act(self.world, key, cloud_n3=job.cloud_n3)
             tried.append(TriedDemo(key, int(out.stage), bool(out.knot), out.failure))
-        return StateTries(job.execution_id, job.step_index, before, tuple(tried))
+        return StateTries(job.execution_id, job.step_index, before, tuple(tried), numeric_kind())
 
 
 _TRIER: PerProcess[_Trier] = PerProcess(_Trier)

@@ -11,7 +11,9 @@ median margin. Measured by 5-fold greedy on the main training starts (bench/gree
 61.7 % without, 67.0 % with (NN 48.0 %).
 
 File format (JSONL, one object per labelled state): {"execution_id", "step_index",
-"stage_before", "tried": [{"demo", "stage", "knot", "failure"}, ...]}.
+"stage_before", "tried": [{"demo", "stage", "knot", "failure"}, ...], "numeric_kind"}; the last
+names the kind of CPU whose numbers the tries are (core.machine.numeric_kind), absent in files
+written before tries recorded it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
+from knotlab.core.machine import NUMERIC_KIND_KEY, UNRECORDED_KIND
 from knotlab.core.selection.learner import TrainingData
 from knotlab.core.textinput import LineError, parse_json, quote, read_lines
 
@@ -45,6 +48,9 @@ class StateTries:
     step_index: int
     stage_before: int
     tried: tuple[TriedDemo, ...]
+    # The CPU kind that simulated them: a transfer's last bits, and so an outcome, can differ
+    # on another kind.
+    numeric_kind: str = UNRECORDED_KIND
 
     def advanced(self, t: TriedDemo) -> bool:
         """A knot, or a higher stage than the state's with no failure."""
@@ -60,6 +66,7 @@ class StateTries:
                 {"demo": t.demo, "stage": t.stage, "knot": t.knot, "failure": t.failure}
                 for t in self.tried
             ],
+            NUMERIC_KIND_KEY: self.numeric_kind,
         }
 
 
@@ -109,11 +116,13 @@ def _state_tries(d: object) -> StateTries:
         failure = _field(t, "failure", (str, type(None)))
         tried.append(TriedDemo(_field(t, "demo", str), _field(t, "stage", int),
                                _field(t, "knot", bool), failure))  # fmt: skip
+    kind = _field(d, NUMERIC_KIND_KEY, str) if NUMERIC_KIND_KEY in d else UNRECORDED_KIND
     return StateTries(
         _field(d, "execution_id", str),
         _field(d, "step_index", int),
         _field(d, "stage_before", int),
         tuple(tried),
+        kind,
     )
 
 

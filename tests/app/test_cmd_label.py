@@ -13,6 +13,32 @@ from tests.minilib import write_mini_files
 pytestmark = pytest.mark.xdist_group("minilib")
 
 
+def test_oracle_labels_name_their_cpu_kind_and_a_resume_on_another_kind_warns(
+    tmp_path, capsys, monkeypatch
+):
+    from knotlab.core import machine
+
+    lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
+    url = f"sqlite:///{tmp_path / 'labels.db'}"
+    args = ["label", "--oracle", "--task-set", str(tasks_path), "--library", str(lib_path)]
+    args += ["--db", url, "--sim-budget", "3", "--workers", "1", "--no-progress"]
+    assert cli.main([*args, "--tasks", "1"]) == 0
+    assert "warning" not in capsys.readouterr().err  # a fresh store mixes nothing
+    here = machine.numeric_kind()
+    with open_store(url) as store:
+        (ex,) = store.training_executions(include_unfinished=True)
+    assert ex.metadata["numeric_kind"] == here
+    # The same store resumed on a machine of another kind: one line says so, and labels on.
+    monkeypatch.setattr(machine, "numeric_kind", lambda: "avx9000")
+    assert cli.main([*args, "--tasks", "2"]) == 0
+    err = capsys.readouterr().err
+    assert f"holds labels made on {here}; this machine is avx9000" in err
+    with open_store(url) as store:
+        assert len(store.training_executions(include_unfinished=True)) == 2
+    assert cli.main([*args, "--tasks", "2"]) == 0  # nothing left to label: nothing to say
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_oracle_labelling_fills_the_store_and_resumes(tmp_path, capsys):
     lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
     url = f"sqlite:///{tmp_path / 'labels.db'}"

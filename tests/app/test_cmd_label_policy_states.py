@@ -6,6 +6,7 @@ import json
 
 from knotlab.app.cli import main
 from knotlab.core.experiments.policy_states import REACHED_BY
+from knotlab.core.machine import numeric_kind
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.tasks import get_task
 from knotlab.labeling_db.store import open_store
@@ -47,6 +48,7 @@ def test_a_round_labels_the_states_greedy_reaches_records_who_reached_them_and_r
         assert reached["policy"] == "greedy" and reached["round"] == 2
         assert reached["model"] == summary["model_hash"]
         assert reached["start_task_id"] == "main-train-0000"
+        assert ex.metadata["numeric_kind"] == numeric_kind()  # the CPU kind that labelled it
         assert ex.execution_id == f"policy-greedy-r2-main-train-0000-t{reached['step']}"
         assert len(reached["chosen_before"]) == reached["step"] >= 1
         assert ex.steps or ex.dead_ends  # a way to the knot from there, or a dead end

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from knotlab.app.cli import main
+from knotlab.core.machine import numeric_kind
 from knotlab.core.selection.qmodel import QModel
 from knotlab.core.selection.tries import read_tries
 from knotlab.core.tasks import get_task
@@ -36,6 +37,9 @@ def test_the_search_labels_a_start_with_its_choices_records_its_model_and_resume
     got = read_tries(tries)  # one line per labelled state, for `knotlab train --tries`
     assert sorted(got) == [(ex.execution_id, i) for i in range(len(ex.steps))]
     assert all(not rec.advanced(t) for rec in got.values() for t in rec.tried)
+    # the CPU kind that made the label and its tries (a near-tie can go the other way elsewhere)
+    assert ex.metadata["numeric_kind"] == numeric_kind()
+    assert {rec.numeric_kind for rec in got.values()} == {numeric_kind()}
     # resumable: a second run finds the start labelled and writes nothing more
     before = tries.read_text()
     assert main(_argv(db, "--tries-out", str(tries))) == 0

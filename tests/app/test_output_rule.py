@@ -177,6 +177,23 @@ def test_labels_tries_appends_to_a_committed_file_only_with_force(shipped, tmp_p
     assert json.loads(lines[1])["step_index"] == 1
 
 
+def test_labels_tries_name_their_cpu_kind_and_a_resume_on_another_kind_warns(tmp_path, capsys):
+    from knotlab.core.machine import numeric_kind
+
+    labels, (ex,) = _labels_with_candidates(tmp_path / "labels.jsonl")
+    library = mini_library(2).save(tmp_path / "lib.npz")
+    out = tmp_path / "tries.jsonl"
+    first = json.loads(_tries_line(ex.execution_id, 0, ex.steps[0].candidates[:1]))
+    out.write_text(json.dumps({**first, "numeric_kind": "avx9000"}) + "\n")  # another machine's
+    assert cli.main(_tries_args(labels, library, out)) == 0  # resumed: the second state
+    err = capsys.readouterr().err
+    assert f"holds tries made on avx9000; this machine is {numeric_kind()}" in err
+    made_here = json.loads(out.read_text().splitlines()[1])
+    assert made_here["step_index"] == 1 and made_here["numeric_kind"] == numeric_kind()
+    assert cli.main(_tries_args(labels, library, out)) == 0  # nothing left to try: no warning
+    assert "warning" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [

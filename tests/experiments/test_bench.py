@@ -593,11 +593,11 @@ def test_a_folder_resumed_on_another_kind_of_cpu_says_so_and_counts_each_kind(
     with caplog.at_level("WARNING"):
         assert cli.main(_bench_args(files, out)) == 0
     assert _last_json(capsys)["ran"] == 1
-    warned = [r.getMessage() for r in caplog.records if "episodes run on" in r.getMessage()]
+    warned = [r.getMessage() for r in caplog.records if "episodes made on" in r.getMessage()]
     assert len(warned) == 1 and "avx9000" in warned[0] and "unrecorded" not in warned[0]
     res = json.loads((out / "results.json").read_text())
     assert res["numeric_kinds"] == {"avx9000": 4, numeric_kind(): 1, "unrecorded": 1}
     caplog.clear()
     with caplog.at_level("WARNING"):  # nothing left to run: nothing is mixed, nothing said
         assert cli.main(_bench_args(files, out)) == 0
-    assert not [r for r in caplog.records if "episodes run on" in r.getMessage()]
+    assert not [r for r in caplog.records if "episodes made on" in r.getMessage()]

@@ -67,6 +67,18 @@ def test_read_tries_names_a_bad_line(tmp_path) -> None:
         read_tries(tmp_path / "missing.jsonl")
 
 
+def test_a_tries_line_keeps_its_cpu_kind_and_an_older_line_reads_as_unrecorded(tmp_path) -> None:
+    path = tmp_path / "tries.jsonl"
+    made = StateTries("ex", 1, 0, (TriedDemo("a", 1, False, None),), "avx2")
+    older = {k: v for k, v in StateTries("ex", 2, 0, ()).to_dict().items() if k != "numeric_kind"}
+    path.write_text(json.dumps(made.to_dict()) + "\n" + json.dumps(older) + "\n")
+    read = read_tries(path)
+    assert read[("ex", 1)] == made and read[("ex", 2)].numeric_kind == "unrecorded"
+    path.write_text(json.dumps({**made.to_dict(), "numeric_kind": 5}) + "\n")
+    with pytest.raises(InvalidInputError, match=r"tries.jsonl:1: .*'numeric_kind' is 5"):
+        read_tries(path)
+
+
 @pytest.mark.slow
 def test_tries_are_simulated_from_the_labelled_rope_and_repeat_exactly() -> None:
     lib = mini_library(2)

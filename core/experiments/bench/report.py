@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from knotlab.core.atomic import atomic_path
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.machine import UNRECORDED_KIND
 from knotlab.core.tasks import DEFAULT_TASK, get_task
 
 RESULTS_FORMAT = "knotlab-bench-results"
@@ -39,11 +38,6 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
         confidence_level=float(2 * norm.cdf(z) - 1), method="wilson"
     )
     return (float(ci.low), float(ci.high))
-
-
-def numeric_kinds(records: Iterable[Mapping]) -> dict[str, int]:
-    """How many of ``records`` each numeric kind of CPU ran, 'unrecorded' for older lines."""
-    return dict(sorted(Counter(r.get("numeric_kind", UNRECORDED_KIND) for r in records).items()))
 
 
 def summarize(policy: str, records: Sequence[dict], reference: Mapping[str, float]) -> dict:

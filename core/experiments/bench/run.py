@@ -38,12 +38,16 @@ from knotlab.core.experiments.bench.report import (
     RESULTS_FILE,
     RESULTS_FORMAT,
     RESULTS_VERSION,
-    numeric_kinds,
     package_versions,
     plot_table,
     summarize,
 )
-from knotlab.core.machine import UNRECORDED_KIND, machine_info, numeric_kind
+from knotlab.core.machine import (
+    kind_of_record,
+    machine_info,
+    numeric_kinds,
+    other_kinds_warning,
+)
 from knotlab.core.seeds import derive_seed
 from knotlab.core.selection.policies import policy_config
 from knotlab.core.selection.qmodel import QModel
@@ -159,16 +163,9 @@ def plan_jobs(
 
 def _warn_of_other_kinds(out: Path, finished: Iterable[Mapping]) -> None:
     """Say so when the episodes about to run join ones another kind of CPU made."""
-    here = numeric_kind()
-    others = [k for k in numeric_kinds(finished) if k not in (here, UNRECORDED_KIND)]
-    if others:
-        log.warning(
-            "%s holds episodes run on %s; this machine is %s, whose last bits can choose other "
-            "demos at near-ties: results.json counts the episodes of each kind",
-            out,
-            " and ".join(others),
-            here,
-        )
+    warning = other_kinds_warning(str(out), map(kind_of_record, finished), "episodes")
+    if warning is not None:
+        log.warning("%s: results.json counts the episodes of each kind", warning)
 
 
 def run_bench(

@@ -12,6 +12,7 @@ import pytest
 
 from knotlab.app.web.session import LabelSession
 from knotlab.app.web.session_records import Phase, SessionError
+from knotlab.core.machine import numeric_kind
 from knotlab.core.registration.planner import DemoTransferer
 from knotlab.core.selection.decision import StepContext
 from knotlab.core.selection.policies import GreedyPolicy, NearestNeighbourPolicy
@@ -64,6 +65,7 @@ def test_accept_stores_state_choice_ranking_model_and_resume_point(store, resour
     execution = store.training_executions(include_unfinished=True)[0]
     step = execution.steps[0]
     assert list(step.candidates) == shown and step.model_version == resources.current.version
+    assert execution.metadata["numeric_kind"] == numeric_kind()  # the CPU kind that ranked it
     episode, resume = store.open_episode("ann")
     assert episode.n_labels == 1 and s.view().step_index == 1
     # the state shown is the rope placed from the stored resume point, exactly
