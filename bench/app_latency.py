@@ -12,6 +12,7 @@ and after the labeller looks at each for --look s. Targets: candidates drawn wit
 median, 0.5 s p95; accept within 1 s; page ready within 3 s; Suggest within 10 s; with 4
 labellers the same within 2x.
 Usage: python bench/app_latency.py [--samples 20] [--tries 5] [--others-screens elsewhere]
+       [--visits 3] [--first-visits 3]
 """
 
 from __future__ import annotations
@@ -231,6 +232,13 @@ def main() -> int:
         help="s a labeller looks at a state before the next R (the 'after looking' rows)",
     )
     p.add_argument(
+        "--visits",
+        type=int,
+        default=3,
+        help="first and returning visits measured alone (the first is the browser's and the"
+        " server's very first page; a median of 3 moves by a few tenths between runs)",
+    )
+    p.add_argument(
         "--first-visits",
         type=int,
         default=3,
@@ -240,6 +248,8 @@ def main() -> int:
     args = p.parse_args()
     if args.first_visits < 1:
         p.error("--first-visits must be at least 1")
+    if args.visits < 1:
+        p.error("--visits must be at least 1")
     print(machine_line())
     if args.full_scans:  # an A/B switch for this measurement only
         from knotlab.app.web import session
@@ -253,13 +263,13 @@ def main() -> int:
         app = start_app(f"sqlite:///{Path(tmp) / 'latency.db'}", sim_workers=args.sim_workers)
         try:
             first, again = [], []
-            for i in range(3):
+            for i in range(args.visits):
                 tab = _page_ready(first, lambda i=i: open_tab(browser, app, f"probe{i}"))
                 tab.page.close()
                 tab = _page_ready(
                     again, lambda c=tab.context: open_tab(browser, app, None, context=c)
                 )
-                if i < 2:
+                if i < args.visits - 1:
                     tab.context.close()
             rows = [
                 _row("page ready, first visit (name typed at once)", first),
