@@ -628,3 +628,18 @@ def test_another_margin_scale_names_its_own_models(project_root) -> None:
     assert lm.margin_weight({}, 1.0) == (1.0, "")  # a model from before the scale was recorded
     assert lm.margin_weight({"margin_scale": 1.0}, 3) == (3.0, "-m3")
     assert lm.margin_weight({"margin_scale": 1.0}, 0.3) == (0.3, "-m0.3")
+
+
+def test_greedy_fragility_slides_a_chain_along_itself_and_finds_the_first_other_choice(
+    project_root,
+) -> None:
+    gf = load_bench_module(project_root, "greedy_fragility")
+    bent = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.2, 0.1, 0]])
+    forward = gf.slide_along(bent, 0.05)  # every node 5 cm further along the chain
+    assert np.allclose(forward[:3], [[0.05, 0, 0], [0.15, 0, 0], [0.2, 0.05, 0]])
+    assert np.allclose(forward[3], [0.2, 0.15, 0])  # past the end: along the end's direction
+    back = gf.slide_along(bent, -0.05)
+    assert np.allclose(back[0], [-0.05, 0, 0]) and np.allclose(back[3], [0.2, 0.05, 0])
+    assert np.allclose(gf.slide_along(bent, 0.0), bent)
+    assert gf.first_other_choice(["a", "b", "c"], ["a", "x", "c"]) == 1
+    assert gf.first_other_choice(["a", "b"], ["a", "b", "c"]) is None
