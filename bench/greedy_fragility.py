@@ -90,6 +90,16 @@ class GreedyChooser:
         return int(np.argmax(self.q(nodes_k3)))
 
 
+def _run_model_hash(folder: Path) -> str | None:
+    """The model a bench folder's episodes ranked with (its run.json identity), if it says."""
+    import json
+
+    run = folder / "run.json"
+    if not run.exists():
+        return None
+    return json.loads(run.read_text()).get("identity", {}).get("model_hash")
+
+
 def _averaged_choice(qs: list[np.ndarray]) -> int:
     stacked = np.where(np.isfinite(qs), qs, -1e9)  # a demo unusable in any draw ranks last
     return int(np.argmax(np.mean(stacked, axis=0)))
@@ -131,6 +141,12 @@ def main() -> int:
         if len(tracked[t]["chosen"]) > d and tracked[t]["nodes_before"][d] is not None
     ][: args.states]
     chooser = GreedyChooser()
+    ran_with = _run_model_hash(args.setting)
+    if ran_with is not None and ran_with != chooser.model.content_hash():
+        raise SystemExit(
+            f"{args.setting} ran greedy with model {ran_with}; the shipped model this probes with "
+            f"is {chooser.model.content_hash()}"
+        )
     rng = np.random.default_rng(args.seed)
     tally: Counter[str] = Counter()
     for t, nodes in tqdm(ropes, desc="probing ropes"):
