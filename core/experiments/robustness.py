@@ -50,8 +50,12 @@ class StudySetting:
         return abs(setting.scale - 1.0)
 
 
+_TRACKERS = tuple(kind.value for kind in EstimatorKind if kind is not EstimatorKind.PERFECT)
+
+
 def parse_study_settings(text: str) -> list[StudySetting]:
-    """Settings from a comma list: nominal, tracker, video, combinedPCT, FACTOR+PCT, FACTOR-PCT,
+    """Settings from a comma list: nominal, the trackers (tracker, video, tracker_ends,
+    video_ends), combinedPCT, FACTOR+PCT, FACTOR-PCT,
     familiesPCT (every factor at +PCT and -PCT where that is a possible world), or any world
     followed by ``:known`` (the agent's model is that world's own physics: a control) or
     ``:measured`` (the nominal model measuring the rope's radius too)."""
@@ -59,7 +63,7 @@ def parse_study_settings(text: str) -> list[StudySetting]:
     for item in (part.strip() for part in text.split(",")):
         if not item:
             continue
-        if item in ("tracker", "video"):
+        if item in _TRACKERS:
             out.append(StudySetting(item, "nominal", EstimatorKind(item)))
         elif item.endswith(":known"):
             world = item.removesuffix(":known")

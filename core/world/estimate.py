@@ -34,6 +34,11 @@ Estimators:
   from its previous estimate), then its nodes are pulled to that frame's visible rope
   (`follow_frame`: hidden nodes stay where the prediction put them). The decision's estimate is
   the ``tracker``'s update from the chain it followed to the end of the motion.
+- ``tracker_ends``, ``video_ends``: the same two trackers that also read the rope's two visible
+  ends at each decision's update and slide their chain along the rope to them where both ends
+  read a slide the same way and the slide leaves the chain's crossings as they were
+  (`rope_ends.slide_to_ends`): the pull moves a chain across the rope only, so without this a
+  chain that slid along the rope in a prediction stays slid.
 
 Same seed, same estimates: a tracker draws its noise and drift from one Generator per episode.
 Shape suffixes: k = rope nodes, n = cloud points.
@@ -59,6 +64,7 @@ from knotlab.core.world.observation import (
 )
 from knotlab.core.world.protocol import World
 from knotlab.core.world.rope import resample_by_arc_length, rope_length, scale_xy_to_length
+from knotlab.core.world.rope_ends import slide_to_ends
 from knotlab.core.world.video_tracking import follow_frame
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
@@ -85,6 +91,13 @@ class EstimatorKind(StrEnum):
     PERFECT = "perfect"
     TRACKER = "tracker"
     VIDEO = "video"
+    TRACKER_ENDS = "tracker_ends"
+    VIDEO_ENDS = "video_ends"
+
+    @property
+    def anchors_ends(self) -> bool:
+        """Whether this tracker slides its chain along the rope to the cloud's visible ends."""
+        return self in (EstimatorKind.TRACKER_ENDS, EstimatorKind.VIDEO_ENDS)
 
     @classmethod
     def parse(cls, value: str | EstimatorKind) -> EstimatorKind:
@@ -211,6 +224,7 @@ def track_update(
     rng: np.random.Generator,
     reaches: tuple[float, ...] = TRACKER_REACHES,
     register_first: bool = True,
+    anchor_ends: bool = False,
 ) -> np.ndarray:
     """The tracker's update (K, 3): the prior chain pulled to the visible rope, once per reach.
 
@@ -219,11 +233,15 @@ def track_update(
     crossing, a diameter away, never pulls; a hidden point keeps its place plus sensor noise),
     then the chain is smoothed; only the part of each move across the chain is kept. One 2 cm
     pass was the best of those tried on training starts (longer or more passes pull a chain
-    across to the wrong strand more often than they correct it).
+    across to the wrong strand more often than they correct it). ``anchor_ends``: before the
+    pull, the chain slides along its own curve to where the cloud's two visible ends say the
+    rope begins and ends (`rope_ends.slide_to_ends`; nothing where they disagree).
     """
     nodes = np.asarray(prior_nodes_k3, dtype=float)
     if register_first and len(surface_n3) >= 4:
         nodes = _registered(nodes, np.asarray(surface_n3, dtype=float))
+    if anchor_ends:
+        nodes = slide_to_ends(nodes, surface_n3, radius=radius, reach=TRACKER_RADIUS)[0]
     for reach in reaches:
         pulled = tracked_centreline(nodes, surface_n3, radius=radius, rng=rng, reach=reach)[0::2]
         tangent = np.gradient(nodes, axis=0)
@@ -300,6 +318,7 @@ class TrackingEstimator:
     noise: float = TRACKER_NOISE  # m, per-coordinate camera noise
     drift: float = TRACKER_DRIFT  # m per step, xy random-walk of the whole estimate
     kind: EstimatorKind = EstimatorKind.TRACKER
+    anchor_ends: bool = False  # slide the chain to the cloud's visible ends at each update
 
     def __post_init__(self) -> None:
         for name in ("noise", "drift"):
@@ -330,7 +349,9 @@ class TrackingEstimator:
         rng = self._rng
         surface = world.observe(max_points=_TRACKER_POINTS, voxel=_TRACKER_VOXEL)
         surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
-        nodes = track_update(self._prior, surface, radius=self._radius, rng=rng)
+        nodes = track_update(
+            self._prior, surface, radius=self._radius, rng=rng, anchor_ends=self.anchor_ends
+        )
         nodes[:, 2] = np.clip(nodes[:, 2], 0.0, _MAX_HEIGHT_RADII * self._radius)
         self._offset[:2] += rng.normal(0.0, self.drift, size=2)
         nodes = nodes + self._offset
@@ -430,8 +451,8 @@ class VideoTracker(TrackingEstimator):
 def make_estimator(kind: EstimatorKind | str) -> StateEstimator:
     """A fresh estimator of ``kind`` (one per episode worker; `start` resets it per episode)."""
     kind = EstimatorKind.parse(kind)
-    if kind is EstimatorKind.TRACKER:
-        return TrackingEstimator()
-    if kind is EstimatorKind.VIDEO:
-        return VideoTracker()
+    if kind in (EstimatorKind.TRACKER, EstimatorKind.TRACKER_ENDS):
+        return TrackingEstimator(kind=kind, anchor_ends=kind.anchors_ends)
+    if kind in (EstimatorKind.VIDEO, EstimatorKind.VIDEO_ENDS):
+        return VideoTracker(kind=kind, anchor_ends=kind.anchors_ends)
     return PerfectEstimator()

@@ -21,7 +21,7 @@ def test_oracle_labels_name_their_cpu_kind_and_a_resume_on_another_kind_warns(
     lib_path, tasks_path = write_mini_files(tmp_path, n_tasks=2, split="train")
     url = f"sqlite:///{tmp_path / 'labels.db'}"
     args = ["label", "--oracle", "--task-set", str(tasks_path), "--library", str(lib_path)]
-    args += ["--db", url, "--sim-budget", "3", "--workers", "1", "--no-progress"]
+    args += ["--db", url, "--sim-budget", "1", "--workers", "1", "--no-progress"]
     assert cli.main([*args, "--tasks", "1"]) == 0
     assert "warning" not in capsys.readouterr().err  # a fresh store mixes nothing
     here = machine.numeric_kind()
