@@ -235,7 +235,8 @@ def track_update(
     pass was the best of those tried on training starts (longer or more passes pull a chain
     across to the wrong strand more often than they correct it). ``anchor_ends``: before the
     pull, the chain slides along its own curve to where the cloud's two visible ends say the
-    rope begins and ends (`rope_ends.slide_to_ends`; nothing where they disagree).
+    rope begins and ends (`rope_ends.slide_to_ends`; nothing where they disagree or where the
+    slide would change the chain's crossings).
     """
     nodes = np.asarray(prior_nodes_k3, dtype=float)
     if register_first and len(surface_n3) >= 4:
