@@ -21,7 +21,7 @@ from enum import Enum
 import numpy as np
 
 from knotlab.core.errors import InvalidInputError
-from knotlab.core.world.rope import resample_by_arc_length
+from knotlab.core.world.rope import arc_lengths, resample_by_arc_length
 from knotlab.core.world.trajectory import GripperTrajectory, down_rotation
 
 PARK_LEFT = np.array([-0.7, 0.4, 0.3])  # where the idle left gripper waits, far from the rope
@@ -132,11 +132,6 @@ def pick_beyond_tip(
         return best[1]
     # The section ends short of the line: take its farthest point along the tail.
     return section_k3[int(np.argmax(np.where(above, u, -np.inf)))]
-
-
-def arc_lengths(nodes_k3: np.ndarray) -> np.ndarray:
-    """Arc length from end A at every node (k,)."""
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
 
 
 def point_at(nodes_k3: np.ndarray, s: float) -> np.ndarray:

@@ -29,13 +29,18 @@ def rope_length(nodes_k3: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(nodes, axis=0), axis=1).sum())
 
 
+def arc_lengths(nodes_k3: np.ndarray) -> np.ndarray:
+    """Arc length from the first node at every node (k,)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
+
+
 def resample_by_arc_length(nodes_k3: np.ndarray, n: int) -> np.ndarray:
     """n nodes evenly spaced by arc length along the polyline (ends kept exactly)."""
     nodes = as_nodes(nodes_k3)
     if int(n) != n or n < 2:
         raise InvalidInputError(f"resample count must be an integer >= 2, got {n}")
     seg_m = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
-    arc_k = np.concatenate([[0.0], np.cumsum(seg_m)])
+    arc_k = arc_lengths(nodes)
     if arc_k[-1] <= 0.0:
         raise InvalidInputError("rope nodes have zero length: cannot resample")
     # Drop repeated nodes so np.interp sees a strictly increasing abscissa.

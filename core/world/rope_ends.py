@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from knotlab.core.world.knot import canonical_code, gauss_code
+from knotlab.core.world.rope import arc_lengths
 
 END_SEARCH = 0.08  # m: how far past a chain's end its extension looks for the rope
 END_DEAD_BAND = 0.005  # m: a slide within the cloud's voxel and noise is no evidence
@@ -45,28 +46,36 @@ def read_ends(
     nodes_k3: np.ndarray, surface_n3: np.ndarray, *, radius: float, reach: float
 ) -> EndReading:
     """The slide of the chain (K, 3) along the rope that the cloud's two visible ends say."""
-    nodes = np.asarray(nodes_k3, dtype=float)
-    surface = np.asarray(surface_n3, dtype=float)
+    return _read(
+        np.asarray(nodes_k3, dtype=float), np.asarray(surface_n3, dtype=float), radius, reach
+    )[0]
+
+
+def _read(
+    nodes: np.ndarray, surface: np.ndarray, radius: float, reach: float
+) -> tuple[EndReading, tuple[np.ndarray, np.ndarray, float] | None]:
+    """`read_ends`'s reading and the extended chain it was read along (None: no cloud)."""
     if len(surface) == 0 or len(nodes) < 2:
-        return EndReading(None, None, 0.0)
-    path_p3, arc_p, length = _extended(nodes, surface, radius)
+        return EndReading(None, None, 0.0), None
+    extended = _extended(nodes, surface, radius)
+    path_p3, arc_p, length = extended
     s_n, z_n, dist_n = _project_xy(path_p3, arc_p, surface[:, :2])
     # The same height test as the pull's: the other strand at a crossing is a diameter away.
     mine = (dist_n < reach) & (np.abs(surface[:, 2] - radius - z_n) < radius)
     if not np.any(mine):
-        return EndReading(None, None, 0.0)
+        return EndReading(None, None, 0.0), extended
     s = s_n[mine]
     # An end reading counts only when the rope is seen near that end at all.
     first = float(s.min()) + END_OFFSET if s.min() < END_SEARCH else None
     last = float(s.max()) + END_OFFSET - length if s.max() > length - END_SEARCH else None
     if first is None or last is None or min(abs(first), abs(last)) <= END_DEAD_BAND:
-        return EndReading(first, last, 0.0)
+        return EndReading(first, last, 0.0), extended
     if (first > 0) != (last > 0):  # a chain too long or too short, or a hidden end: not a slide
-        return EndReading(first, last, 0.0)
+        return EndReading(first, last, 0.0), extended
     # The end that overshoots the visible rope reads the slide along the chain itself; the end
     # that stops short reads it along an extension traced through the cloud, which loses a rope
     # that curls tightly or dips under a strand, so it only confirms the direction.
-    return EndReading(first, last, first if first > 0 else last)
+    return EndReading(first, last, first if first > 0 else last), extended
 
 
 def slide_to_ends(
@@ -76,12 +85,11 @@ def slide_to_ends(
     that changes how it crosses itself (then, or where the ends disagree, the chain unchanged),
     and the reading acted on."""
     nodes = np.asarray(nodes_k3, dtype=float)
-    reading = read_ends(nodes, surface_n3, radius=radius, reach=reach)
-    if reading.applied == 0.0:
+    reading, extended = _read(nodes, np.asarray(surface_n3, dtype=float), radius, reach)
+    if reading.applied == 0.0 or extended is None:
         return nodes, reading
-    path_p3, arc_p, _ = _extended(nodes, np.asarray(surface_n3, dtype=float), radius)
-    own_arc_k = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))])
-    node_arc_k = own_arc_k + np.clip(reading.applied, -END_SEARCH, END_SEARCH)
+    path_p3, arc_p, _ = extended
+    node_arc_k = arc_lengths(nodes) + np.clip(reading.applied, -END_SEARCH, END_SEARCH)
     moved = np.stack([np.interp(node_arc_k, arc_p, path_p3[:, d]) for d in range(3)], axis=1)
     # A slide that changes how the chain crosses itself (a tail carried across a strand, or
     # drawn back from one) trades the knot's topology for position: not taken.

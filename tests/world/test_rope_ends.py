@@ -134,14 +134,19 @@ def test_a_slide_that_would_change_the_chains_crossings_is_refused(monkeypatch):
     assert gauss_code(chain)[1] == 0
 
     def reads(slide):
-        return lambda *a, **k: rope_ends.EndReading(slide, slide, slide)
+        # Both ends read ``slide``; the extension is traced as `slide_to_ends` traces it.
+        def read(nodes, surface, radius, reach):
+            extended = rope_ends._extended(nodes, surface, radius)
+            return rope_ends.EndReading(slide, slide, slide), extended
+
+        return read
 
     nothing_seen = np.zeros((0, 3))  # the extension past the tail then runs straight on
-    monkeypatch.setattr(rope_ends, "read_ends", reads(0.05))
+    monkeypatch.setattr(rope_ends, "_read", reads(0.05))
     moved, reading = slide_to_ends(chain, nothing_seen, radius=RADIUS, reach=TRACKER_RADIUS)
     # Five centimetres on would carry the tail across the first strand: refused.
     assert reading.applied == 0.0 and np.array_equal(moved, chain)
-    monkeypatch.setattr(rope_ends, "read_ends", reads(0.01))
+    monkeypatch.setattr(rope_ends, "_read", reads(0.01))
     moved, reading = slide_to_ends(chain, nothing_seen, radius=RADIUS, reach=TRACKER_RADIUS)
     assert reading.applied == 0.01 and gauss_code(moved)[1] == 0
     assert np.linalg.norm(moved - chain, axis=1).mean() == pytest.approx(0.01, abs=0.002)

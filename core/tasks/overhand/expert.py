@@ -49,7 +49,6 @@ import numpy as np
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.tasks.expert_moves import (
     RopeEnd,
-    arc_lengths,
     end_grasp_point,
     pen_lay,
     perp,
@@ -62,7 +61,7 @@ from knotlab.core.tasks.expert_runner import DemoRun, ScriptedExpert, StepRecord
 from knotlab.core.tasks.overhand.stages import Stage, stage_of_code
 from knotlab.core.world.knot import analyse_knot
 from knotlab.core.world.protocol import World
-from knotlab.core.world.rope import segment_crossings_xy
+from knotlab.core.world.rope import arc_lengths, segment_crossings_xy
 from knotlab.core.world.trajectory import GripperTrajectory
 
 N_STEPS = 3
