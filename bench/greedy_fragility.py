@@ -8,7 +8,10 @@ from the tracker's estimate; how often a slide of the true chain along itself (`
 ways) or Gaussian noise on its nodes (``--noise`` m) changes greedy's choice; and whether averaging
 Q over five slides or five noise draws of a synthetic estimate (the true chain slid by
 U(-2, 2) cm plus 3 mm noise) recovers the true rope's choice more often than the estimate alone.
-No episode is played: every figure is a scan of a recorded rope (seeded draws).
+Where the setting's rows record the estimates themselves (``estimate_nodes``), it also splits
+the estimates' effect into their shape error alone and their error along the rope alone, beside
+a slid and a noisy true rope, with the Q each choice gives up on the true rope. No episode is
+played: every figure is a scan of a recorded rope (seeded draws).
 
 Usage: .venv/bin/python bench/greedy_fragility.py \\
          --setting results/robustness_families_avx2/video \\
@@ -54,6 +57,24 @@ def slide_along(nodes_k3: np.ndarray, s: float) -> np.ndarray:
     out[before] = nodes[0] + np.outer(t[before], (nodes[1] - nodes[0]) / seg[0])
     out[after] = nodes[-1] + np.outer(t[after] - u[-1], (nodes[-1] - nodes[-2]) / seg[-1])
     return out
+
+
+def on_curve(points_n3: np.ndarray, curve_k3: np.ndarray) -> np.ndarray:
+    """Each point moved to its nearest place on the polyline ``curve_k3`` (3-D).
+
+    A chain put on another chain's curve keeps its own places along the rope and takes the
+    other's shape: the true nodes on an estimate's curve are the estimate's shape error alone,
+    the estimate's nodes on the true curve its error along the rope alone.
+    """
+    points = np.asarray(points_n3, dtype=float)
+    start_m3 = np.asarray(curve_k3, dtype=float)[:-1]
+    step_m3 = np.diff(np.asarray(curve_k3, dtype=float), axis=0)
+    len2_m = np.maximum(np.einsum("mi,mi->m", step_m3, step_m3), 1e-18)
+    rel_nm3 = points[:, None, :] - start_m3[None]
+    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm3, step_m3) / len2_m, 0.0, 1.0)
+    near_nm3 = start_m3[None] + t_nm[:, :, None] * step_m3[None]
+    best_n = np.argmin(np.linalg.norm(near_nm3 - points[:, None, :], axis=2), axis=1)
+    return near_nm3[np.arange(len(points)), best_n]
 
 
 def first_other_choice(a: list[str], b: list[str]) -> int | None:
@@ -192,7 +213,60 @@ def main() -> int:
     for label, got, total in rows:
         share = f"{100 * got / total:.0f} %" if total else "-"
         print(f"| {label} | {got} / {total} | {share} |")
+    estimated = [(t, r, tracked[t].get("estimate_nodes", [])) for t, r in ropes]
+    estimated = [(t, r, e[d]) for t, r, e in estimated if len(e) > d and e[d] is not None]
+    if estimated:
+        _decompose(chooser, [(r, decode_nodes(e)) for _, r, e in estimated], args, d)
     return 0
+
+
+def _decompose(
+    chooser: GreedyChooser,
+    pairs: list[tuple[np.ndarray, np.ndarray]],
+    args: argparse.Namespace,
+    d: int,
+) -> None:
+    """Greedy's choice from the recorded estimates, from their shape error alone and from their
+    error along the rope alone, against its choice from the true rope: how often the same, and
+    the Q (on the true rope) given up."""
+    from tqdm import tqdm
+
+    rng = np.random.default_rng(args.seed + 1)
+    variants = {
+        "the tracker's estimate": lambda true, est: est,
+        "  its shape error alone (true nodes on its curve)": lambda true, est: on_curve(true, est),
+        "  its error along the rope alone (its nodes on the true curve)": (
+            lambda true, est: on_curve(est, true)
+        ),
+        f"the true rope slid {100 * args.slide:g} cm (either way)": (
+            lambda true, est: slide_along(true, args.slide * rng.choice([-1.0, 1.0]))
+        ),
+        f"the true rope with {1000 * args.noise:g} mm node noise": (
+            lambda true, est: true + rng.normal(0.0, args.noise, size=true.shape)
+        ),
+    }
+    same = dict.fromkeys(variants, 0)
+    regret: dict[str, list[float]] = {name: [] for name in variants}
+    for true, est in tqdm(pairs, desc="decomposing estimates"):
+        q_true = chooser.q(true)
+        best = int(np.argmax(q_true))
+        for name, make in variants.items():
+            chosen = chooser.choice(make(true, est))
+            same[name] += chosen == best
+            regret[name].append(float(q_true[best] - q_true[chosen]))
+    n = len(pairs)
+    print(f"\nwhere the recorded estimates' error comes from, decision {d}, {n} estimates:")
+    print(
+        "| greedy decides from | its choice is the true rope's | mean Q given up on the true rope |"
+    )
+    print("|---|---:|---:|")
+    for name in variants:
+        lost = np.asarray(regret[name])
+        finite = lost[np.isfinite(lost)]
+        unusable = len(lost) - len(finite)
+        tail = f" ({unusable} unusable on the true rope)" if unusable else ""
+        mean = f"{finite.mean():.3f}" if len(finite) else "-"
+        print(f"| {name} | {same[name]} / {n} ({100 * same[name] / n:.0f} %) | {mean}{tail} |")
 
 
 if __name__ == "__main__":

@@ -110,6 +110,9 @@ class EpisodeOutcome:
     # With a state estimator: whether the estimate crossed itself as the rope did at each step
     # (the same over/under crossing code; `RopeEstimate.crossings_right`).
     estimate_crossings_right: tuple[bool, ...] = ()
+    # With a state estimator: the estimated rope each step decided from (`encode_nodes`), beside
+    # the true rope in ``nodes_before``, so where an estimate went wrong can be read back.
+    estimate_nodes: tuple[str | None, ...] = ()
 
     @classmethod
     def errored(
@@ -150,6 +153,7 @@ class EpisodeOutcome:
                 if self.estimate_crossings_right
                 else {}
             ),
+            **({"estimate_nodes": list(self.estimate_nodes)} if self.estimate_nodes else {}),
         }
 
 
@@ -206,6 +210,7 @@ class EpisodeRecord:
                 for s in self.steps
                 if "estimate_crossings_right" in s.info
             ),
+            tuple(s.info["estimate_nodes"] for s in self.steps if "estimate_nodes" in s.info),
         )
 
     def summary(self) -> dict:
@@ -314,6 +319,7 @@ def run_episode(
                     rng = np.random.default_rng(step_seed(seed, step))
                     cloud = cloud + rng.normal(0.0, observe_noise, size=cloud.shape)
                 estimate_info = {
+                    "estimate_nodes": encode_nodes(estimate.nodes_k3),
                     "estimate_error_mm": estimate.error_mm,
                     "estimate_shape_mm": estimate.shape_mm,
                     **(

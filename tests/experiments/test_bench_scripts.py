@@ -643,3 +643,18 @@ def test_greedy_fragility_slides_a_chain_along_itself_and_finds_the_first_other_
     assert np.allclose(gf.slide_along(bent, 0.0), bent)
     assert gf.first_other_choice(["a", "b", "c"], ["a", "x", "c"]) == 1
     assert gf.first_other_choice(["a", "b"], ["a", "b", "c"]) is None
+
+
+def test_greedy_fragility_puts_a_chain_on_another_chains_curve(project_root) -> None:
+    gf = load_bench_module(project_root, "greedy_fragility")
+    bent = np.array([[0.0, 0, 0], [0.2, 0, 0], [0.2, 0.2, 0]])
+    points = np.array([[0.05, 0.01, 0], [0.25, 0.1, 0.02], [-0.1, 0.05, 0], [0.2, 0.3, 0]])
+    on = gf.on_curve(points, bent)
+    # Each point goes to its nearest place on the curve: across a segment, or to an end.
+    assert np.allclose(on, [[0.05, 0, 0], [0.2, 0.1, 0], [0, 0, 0], [0.2, 0.2, 0]])
+    # A chain on its own curve stays where it is; the true nodes on a slid estimate's curve
+    # (same shape) are the true nodes: no shape error is left, only the slide.
+    assert np.allclose(gf.on_curve(bent, bent), bent)
+    line = np.column_stack([np.linspace(0, 0.4, 9), np.zeros(9), np.zeros(9)])
+    slid = gf.slide_along(line, 0.03)[:-1]  # stays on the line
+    assert np.allclose(gf.on_curve(line[1:-1], slid), line[1:-1])

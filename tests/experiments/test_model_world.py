@@ -14,7 +14,13 @@ from knotlab.core.agent import Agent
 from knotlab.core.demos.library import DemoLibrary
 from knotlab.core.errors import InvalidInputError
 from knotlab.core.execution.memo import OutcomeMemo
-from knotlab.core.world.estimate import PerfectEstimator, TrackingEstimator, VideoTracker
+from knotlab.core.experiments.episode import decode_nodes
+from knotlab.core.world.estimate import (
+    PerfectEstimator,
+    TrackingEstimator,
+    VideoTracker,
+    node_error_mm,
+)
 from knotlab.core.world.observation import centreline_points
 from knotlab.core.world.sim import RopeParams, RopeWorld
 from tests.minilib import mini_library, mini_tasks, write_mini_files
@@ -86,6 +92,12 @@ def test_with_a_tracker_the_search_never_touches_the_worlds_state(tracker):
     crossings = record.outcome().estimate_crossings_right
     assert len(crossings) == record.n_steps and crossings[0]  # it starts on the true chain
     assert record.summary()["estimate_crossings_right"] == list(crossings)
+    # The estimate each step decided from is recorded beside the true rope: read back, its
+    # node error against the true rope is the recorded error (to the encoding's 0.1 mm).
+    row = record.summary()
+    assert len(row["estimate_nodes"]) == record.n_steps
+    for est, true, err in zip(row["estimate_nodes"], row["nodes_before"], errors, strict=True):
+        assert node_error_mm(decode_nodes(est), decode_nodes(true)) == pytest.approx(err, abs=0.2)
 
 
 def test_the_video_tracker_gets_the_worlds_frames_through_a_shared_memo_and_ends_the_same():
