@@ -60,18 +60,23 @@ def slide_along(nodes_k3: np.ndarray, s: float) -> np.ndarray:
 
 
 def on_curve(points_n3: np.ndarray, curve_k3: np.ndarray) -> np.ndarray:
-    """Each point moved to its nearest place on the polyline ``curve_k3`` (3-D).
+    """Each point moved to its nearest place on the polyline ``curve_k3`` (3-D), the curve
+    running on past its two ends along their own directions.
 
     A chain put on another chain's curve keeps its own places along the rope and takes the
     other's shape: the true nodes on an estimate's curve are the estimate's shape error alone,
-    the estimate's nodes on the true curve its error along the rope alone.
+    the estimate's nodes on the true curve its error along the rope alone (past an end they
+    continue the curve, as `slide_along` does, rather than pile up on the end).
     """
     points = np.asarray(points_n3, dtype=float)
     start_m3 = np.asarray(curve_k3, dtype=float)[:-1]
     step_m3 = np.diff(np.asarray(curve_k3, dtype=float), axis=0)
     len2_m = np.maximum(np.einsum("mi,mi->m", step_m3, step_m3), 1e-18)
     rel_nm3 = points[:, None, :] - start_m3[None]
-    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm3, step_m3) / len2_m, 0.0, 1.0)
+    lower_m = np.zeros(len(len2_m))
+    upper_m = np.ones(len(len2_m))
+    lower_m[0], upper_m[-1] = -np.inf, np.inf
+    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm3, step_m3) / len2_m, lower_m, upper_m)
     near_nm3 = start_m3[None] + t_nm[:, :, None] * step_m3[None]
     best_n = np.argmin(np.linalg.norm(near_nm3 - points[:, None, :], axis=2), axis=1)
     return near_nm3[np.arange(len(points)), best_n]
@@ -231,6 +236,8 @@ def _decompose(
     the Q (on the true rope) given up."""
     from tqdm import tqdm
 
+    from knotlab.core.errors import SolverError
+
     rng = np.random.default_rng(args.seed + 1)
     variants = {
         "the tracker's estimate": lambda true, est: est,
@@ -246,12 +253,17 @@ def _decompose(
         ),
     }
     same = dict.fromkeys(variants, 0)
+    unscannable = dict.fromkeys(variants, 0)
     regret: dict[str, list[float]] = {name: [] for name in variants}
     for true, est in tqdm(pairs, desc="decomposing estimates"):
         q_true = chooser.q(true)
         best = int(np.argmax(q_true))
         for name, make in variants.items():
-            chosen = chooser.choice(make(true, est))
+            try:
+                chosen = chooser.choice(make(true, est))
+            except SolverError:  # a chain put on another's curve can fold into a degenerate cloud
+                unscannable[name] += 1
+                continue
             same[name] += chosen == best
             regret[name].append(float(q_true[best] - q_true[chosen]))
     n = len(pairs)
@@ -266,7 +278,10 @@ def _decompose(
         unusable = len(lost) - len(finite)
         tail = f" ({unusable} unusable on the true rope)" if unusable else ""
         mean = f"{finite.mean():.3f}" if len(finite) else "-"
-        print(f"| {name} | {same[name]} / {n} ({100 * same[name] / n:.0f} %) | {mean}{tail} |")
+        m = n - unscannable[name]
+        share = f"{same[name]} / {m} ({100 * same[name] / m:.0f} %)" if m else "-"
+        skipped = f"; {unscannable[name]} could not be scanned" if unscannable[name] else ""
+        print(f"| {name} | {share}{skipped} | {mean}{tail} |")
 
 
 if __name__ == "__main__":

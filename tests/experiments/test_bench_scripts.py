@@ -650,11 +650,12 @@ def test_greedy_fragility_puts_a_chain_on_another_chains_curve(project_root) -> 
     bent = np.array([[0.0, 0, 0], [0.2, 0, 0], [0.2, 0.2, 0]])
     points = np.array([[0.05, 0.01, 0], [0.25, 0.1, 0.02], [-0.1, 0.05, 0], [0.2, 0.3, 0]])
     on = gf.on_curve(points, bent)
-    # Each point goes to its nearest place on the curve: across a segment, or to an end.
-    assert np.allclose(on, [[0.05, 0, 0], [0.2, 0.1, 0], [0, 0, 0], [0.2, 0.2, 0]])
+    # Each point goes to its nearest place on the curve, which runs on past its ends.
+    assert np.allclose(on, [[0.05, 0, 0], [0.2, 0.1, 0], [-0.1, 0, 0], [0.2, 0.3, 0]])
     # A chain on its own curve stays where it is; the true nodes on a slid estimate's curve
     # (same shape) are the true nodes: no shape error is left, only the slide.
     assert np.allclose(gf.on_curve(bent, bent), bent)
     line = np.column_stack([np.linspace(0, 0.4, 9), np.zeros(9), np.zeros(9)])
-    slid = gf.slide_along(line, 0.03)[:-1]  # stays on the line
-    assert np.allclose(gf.on_curve(line[1:-1], slid), line[1:-1])
+    slid = gf.slide_along(line, 0.03)  # runs 3 cm past the line's end, along it
+    assert np.allclose(gf.on_curve(line, slid), line)
+    assert np.allclose(gf.on_curve(slid, line), slid)
