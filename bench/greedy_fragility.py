@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 from robustness import _outcomes  # noqa: E402
 
 from knotlab.core.machine import machine_line  # noqa: E402
+from knotlab.core.world.rope import segment_feet  # noqa: E402
 
 SYNTHETIC_SLIDE = 0.02  # m: a synthetic estimate's slide along the rope, drawn from U(-x, x)
 SYNTHETIC_NOISE = 0.003  # m: and the noise on each of its node coordinates
@@ -69,17 +70,11 @@ def on_curve(points_n3: np.ndarray, curve_k3: np.ndarray) -> np.ndarray:
     continue the curve, as `slide_along` does, rather than pile up on the end).
     """
     points = np.asarray(points_n3, dtype=float)
-    start_m3 = np.asarray(curve_k3, dtype=float)[:-1]
-    step_m3 = np.diff(np.asarray(curve_k3, dtype=float), axis=0)
-    len2_m = np.maximum(np.einsum("mi,mi->m", step_m3, step_m3), 1e-18)
-    rel_nm3 = points[:, None, :] - start_m3[None]
-    lower_m = np.zeros(len(len2_m))
-    upper_m = np.ones(len(len2_m))
-    lower_m[0], upper_m[-1] = -np.inf, np.inf
-    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm3, step_m3) / len2_m, lower_m, upper_m)
-    near_nm3 = start_m3[None] + t_nm[:, :, None] * step_m3[None]
-    best_n = np.argmin(np.linalg.norm(near_nm3 - points[:, None, :], axis=2), axis=1)
-    return near_nm3[np.arange(len(points)), best_n]
+    n_segments = len(curve_k3) - 1
+    low_m, high_m = np.zeros(n_segments), np.ones(n_segments)
+    low_m[0], high_m[-1] = -np.inf, np.inf
+    _, foot_nm3, dist_nm = segment_feet(points, curve_k3, low_m=low_m, high_m=high_m)
+    return foot_nm3[np.arange(len(points)), np.argmin(dist_nm, axis=1)]
 
 
 def first_other_choice(a: list[str], b: list[str]) -> int | None:

@@ -34,6 +34,31 @@ def arc_lengths(nodes_k3: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
 
 
+def segment_feet(
+    points_n3: np.ndarray,
+    path_k3: np.ndarray,
+    *,
+    xy_only: bool = False,
+    low_m: np.ndarray | float = 0.0,
+    high_m: np.ndarray | float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's nearest place on each segment of a polyline: the fraction along the
+    segment (N, M), clipped to [low, high] per segment (-inf / inf continue a segment past its
+    ends), the foot there (N, M, 3) and its distance (N, M), in the table's plane where
+    ``xy_only``."""
+    points = np.asarray(points_n3, dtype=float)
+    path = np.asarray(path_k3, dtype=float)
+    dims = 2 if xy_only else 3
+    start_m3 = path[:-1]
+    step_m3 = np.diff(path, axis=0)
+    len2_m = np.maximum(np.einsum("mi,mi->m", step_m3[:, :dims], step_m3[:, :dims]), 1e-18)
+    rel_nm = points[:, None, :dims] - start_m3[None, :, :dims]
+    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm, step_m3[:, :dims]) / len2_m, low_m, high_m)
+    foot_nm3 = start_m3[None] + t_nm[:, :, None] * step_m3[None]
+    dist_nm = np.linalg.norm(foot_nm3[:, :, :dims] - points[:, None, :dims], axis=2)
+    return t_nm, foot_nm3, dist_nm
+
+
 def resample_by_arc_length(nodes_k3: np.ndarray, n: int) -> np.ndarray:
     """n nodes evenly spaced by arc length along the polyline (ends kept exactly)."""
     nodes = as_nodes(nodes_k3)

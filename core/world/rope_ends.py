@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from knotlab.core.world.knot import canonical_code, gauss_code
-from knotlab.core.world.rope import arc_lengths
+from knotlab.core.world.rope import arc_lengths, segment_feet
 
 END_SEARCH = 0.08  # m: how far past a chain's end its extension looks for the rope
 END_DEAD_BAND = 0.005  # m: a slide within the cloud's voxel and noise is no evidence
@@ -59,7 +59,7 @@ def _read(
         return EndReading(None, None, 0.0), None
     extended = _extended(nodes, surface, radius)
     path_p3, arc_p, length = extended
-    s_n, z_n, dist_n = _project_xy(path_p3, arc_p, surface[:, :2])
+    s_n, z_n, dist_n = _project_xy(path_p3, arc_p, surface)
     # The same height test as the pull's: the other strand at a crossing is a diameter away.
     mine = (dist_n < reach) & (np.abs(surface[:, 2] - radius - z_n) < radius)
     if not np.any(mine):
@@ -139,20 +139,13 @@ def _traced(
 
 
 def _project_xy(
-    path_p3: np.ndarray, arc_p: np.ndarray, points_n2: np.ndarray
+    path_p3: np.ndarray, arc_p: np.ndarray, points_n3: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each point's nearest place on the path in xy: its arc coordinate, the path's height
     there, and the xy distance (all (N,))."""
-    a_m2 = path_p3[:-1, :2]
-    d_m2 = path_p3[1:, :2] - a_m2
-    len2_m = np.maximum(np.einsum("mi,mi->m", d_m2, d_m2), 1e-18)
-    rel_nm2 = points_n2[:, None, :] - a_m2[None, :, :]
-    t_nm = np.clip(np.einsum("nmi,mi->nm", rel_nm2, d_m2) / len2_m, 0.0, 1.0)
-    gap_nm2 = rel_nm2 - t_nm[:, :, None] * d_m2[None, :, :]
-    dist2_nm = np.einsum("nmi,nmi->nm", gap_nm2, gap_nm2)
-    best_n = np.argmin(dist2_nm, axis=1)
-    rows = np.arange(len(points_n2))
+    t_nm, foot_nm3, dist_nm = segment_feet(points_n3, path_p3, xy_only=True)
+    best_n = np.argmin(dist_nm, axis=1)
+    rows = np.arange(len(points_n3))
     t_n = t_nm[rows, best_n]
     s_n = arc_p[best_n] + t_n * (arc_p[best_n + 1] - arc_p[best_n])
-    z_n = path_p3[best_n, 2] + t_n * (path_p3[best_n + 1, 2] - path_p3[best_n, 2])
-    return s_n, z_n, np.sqrt(dist2_nm[rows, best_n])
+    return s_n, foot_nm3[rows, best_n, 2], dist_nm[rows, best_n]

@@ -101,3 +101,21 @@ def test_impossible_perturbation_raises_clear_error() -> None:
     crossing = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0.5, 1, 0], [0.5, -1, 0]], float)
     with pytest.raises(InvalidInputError, match="no self-intersection-free perturbation"):
         perturb_rope(resample_by_arc_length(crossing, 41), 0.0, max_tries=3)
+
+
+def test_segment_feet_finds_each_points_nearest_place_on_every_segment():
+    from knotlab.core.world.rope import segment_feet
+
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    points = np.array([[0.25, 0.5, 0.0], [2.0, 0.5, 3.0], [-1.0, 0.0, 0.0]])
+    t, foot, dist = segment_feet(points, path)
+    assert t.shape == dist.shape == (3, 2) and foot.shape == (3, 2, 3)
+    assert np.allclose(t[0], [0.25, 0.5]) and np.allclose(foot[0, 0], [0.25, 0.0, 0.0])
+    assert np.allclose(dist[0], [0.5, 0.75])
+    # In 3-D the height counts; in the table's plane it does not.
+    assert dist[1, 1] == pytest.approx(np.hypot(1.0, 3.0))
+    assert segment_feet(points, path, xy_only=True)[2][1, 1] == pytest.approx(1.0)
+    # Clipped per segment: the first segment continued before its start reaches (-1, 0, 0).
+    t_open, _, dist_open = segment_feet(points, path, low_m=np.array([-np.inf, 0.0]))
+    assert t_open[2, 0] == pytest.approx(-1.0) and dist_open[2, 0] == pytest.approx(0.0)
+    assert dist[2, 0] == pytest.approx(1.0)
