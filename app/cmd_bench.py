@@ -351,14 +351,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--estimator",
-        choices=("perfect", "tracker", "video", "tracker_ends", "video_ends"),
+        choices=(
+            "perfect",
+            "tracker",
+            "video",
+            "tracker_ends",
+            "video_ends",
+            "tracker_marked",
+            "video_marked",
+        ),
         default="perfect",
         help="how the agent knows the rope's state: perfect (the world's own state), tracker "
         "(its previous estimate carried through each executed step and pulled to the camera "
         "cloud once a step), video (the same tracker following the camera at 30 frames a "
         "second during each motion), or either with _ends (its chain also slid along the rope "
-        "to the cloud's two visible ends at each decision); the trackers need a centreline "
-        "library (default perfect)",
+        "to the cloud's two visible ends at each decision) or with _marked (on a rope marked every "
+        "5 cm: its chain also slid along the rope to the marks in view at each decision); the "
+        "trackers need a centreline library (default perfect)",
     )
     add_no_progress_argument(p)
     add_flag(p, "--json", detail="a summary after the text")

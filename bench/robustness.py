@@ -18,10 +18,11 @@ Usage:
       --settings combined25,combined50,tracker --policies nn,greedy,la2x5 --tasks 200
   .venv/bin/python bench/robustness.py report --out-dir results/robustness_main
 
-Settings: nominal, tracker, video, tracker_ends, video_ends (the trackers), combinedPCT,
-FACTOR+PCT / FACTOR-PCT, familiesPCT (every factor at +-PCT), and WORLD:known (a control: that
-world with an agent model that is its own physics, so what is left of a loss is the world being
-unlike the demos'). Rerun the same command to resume; a setting's folder refuses other arguments.
+Settings: nominal, tracker, video, tracker_ends, video_ends, tracker_marked, video_marked (the
+trackers), combinedPCT, FACTOR+PCT / FACTOR-PCT, familiesPCT (every factor at +-PCT), and
+WORLD:known (a control: that world with an agent model that is its own physics, so what is left
+of a loss is the world being unlike the demos'). Rerun the same command to resume; a setting's
+folder refuses other arguments.
 """
 
 from __future__ import annotations

@@ -55,7 +55,7 @@ _TRACKERS = tuple(kind.value for kind in EstimatorKind if kind is not EstimatorK
 
 def parse_study_settings(text: str) -> list[StudySetting]:
     """Settings from a comma list: nominal, the trackers (tracker, video, tracker_ends,
-    video_ends), combinedPCT, FACTOR+PCT, FACTOR-PCT,
+    video_ends, tracker_marked, video_marked), combinedPCT, FACTOR+PCT, FACTOR-PCT,
     familiesPCT (every factor at +PCT and -PCT where that is a possible world), or any world
     followed by ``:known`` (the agent's model is that world's own physics: a control) or
     ``:measured`` (the nominal model measuring the rope's radius too)."""

@@ -39,8 +39,16 @@ Estimators:
   read a slide the same way and the slide leaves the chain's crossings as they were
   (`rope_ends.slide_to_ends`): the pull moves a chain across the rope only, so without this a
   chain that slid along the rope in a prediction stays slid.
+- ``tracker_marked``, ``video_marked``: the same two trackers on a *marked* rope (a mark every
+  5 cm along it, each one told apart from the others, `rope_marks`): at each decision's update
+  the camera also reads the marks not hidden under another strand, and the chain moves so that
+  its point at each seen mark's place along the rope lies at the mark, short of the camera's
+  noise (the moves interpolated between marks), after the pull. A changed sensor, not a better
+  algorithm: what knowing which part of the rope lies where is worth.
 
-Same seed, same estimates: a tracker draws its noise and drift from one Generator per episode.
+Same seed, same estimates: a tracker draws its noise and drift from one Generator per episode
+(a marked rope's mark noise from a second one, seeded by the same seed, so that the cloud's
+draws are those of the same tracker on an unmarked rope).
 Shape suffixes: k = rope nodes, n = cloud points.
 """
 
@@ -65,6 +73,7 @@ from knotlab.core.world.observation import (
 from knotlab.core.world.protocol import World
 from knotlab.core.world.rope import resample_by_arc_length, rope_length, scale_xy_to_length
 from knotlab.core.world.rope_ends import slide_to_ends
+from knotlab.core.world.rope_marks import MarkReading, move_to_marks, observe_marks
 from knotlab.core.world.video_tracking import follow_frame
 
 if TYPE_CHECKING:  # the simulator imports pybullet: only for the checker
@@ -93,11 +102,24 @@ class EstimatorKind(StrEnum):
     VIDEO = "video"
     TRACKER_ENDS = "tracker_ends"
     VIDEO_ENDS = "video_ends"
+    TRACKER_MARKED = "tracker_marked"
+    VIDEO_MARKED = "video_marked"
 
     @property
     def anchors_ends(self) -> bool:
         """Whether this tracker slides its chain along the rope to the cloud's visible ends."""
         return self in (EstimatorKind.TRACKER_ENDS, EstimatorKind.VIDEO_ENDS)
+
+    @property
+    def reads_marks(self) -> bool:
+        """Whether this tracker follows a marked rope: it reads the marks in view at each
+        decision and moves its chain to them."""
+        return self in (EstimatorKind.TRACKER_MARKED, EstimatorKind.VIDEO_MARKED)
+
+    @property
+    def follows_video(self) -> bool:
+        """Whether this tracker follows the camera during each motion (else once a step)."""
+        return self in (EstimatorKind.VIDEO, EstimatorKind.VIDEO_ENDS, EstimatorKind.VIDEO_MARKED)
 
     @classmethod
     def parse(cls, value: str | EstimatorKind) -> EstimatorKind:
@@ -225,6 +247,7 @@ def track_update(
     reaches: tuple[float, ...] = TRACKER_REACHES,
     register_first: bool = True,
     anchor_ends: bool = False,
+    marks: MarkReading | None = None,
 ) -> np.ndarray:
     """The tracker's update (K, 3): the prior chain pulled to the visible rope, once per reach.
 
@@ -236,7 +259,8 @@ def track_update(
     across to the wrong strand more often than they correct it). ``anchor_ends``: before the
     pull, the chain slides along its own curve to where the cloud's two visible ends say the
     rope begins and ends (`rope_ends.slide_to_ends`; nothing where they disagree or where the
-    slide would change the chain's crossings).
+    slide would change the chain's crossings). ``marks``: after the pull, the chain moves to
+    the marks in view (`rope_marks.move_to_marks`).
     """
     nodes = np.asarray(prior_nodes_k3, dtype=float)
     if register_first and len(surface_n3) >= 4:
@@ -253,6 +277,10 @@ def track_update(
         # so only the part across the chain moves it.
         move -= np.einsum("ij,ij->i", move, tangent)[:, None] * tangent
         nodes = nodes + move
+    if marks is not None:
+        # Last: the pull's mean of nearby surface points shrinks a loop and would move a
+        # node off its mark again.
+        nodes = move_to_marks(nodes, marks)
     return nodes
 
 
@@ -320,6 +348,7 @@ class TrackingEstimator:
     drift: float = TRACKER_DRIFT  # m per step, xy random-walk of the whole estimate
     kind: EstimatorKind = EstimatorKind.TRACKER
     anchor_ends: bool = False  # slide the chain to the cloud's visible ends at each update
+    read_marks: bool = False  # the rope is marked: move the chain to the marks seen
 
     def __post_init__(self) -> None:
         for name in ("noise", "drift"):
@@ -327,6 +356,7 @@ class TrackingEstimator:
             if not (np.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"tracker {name} must be finite and >= 0, got {value}")
         self._rng = np.random.default_rng(0)
+        self._mark_rng = np.random.default_rng(0)
         self._prior: np.ndarray | None = None
         self._radius = 0.0
         self._length = 1.0
@@ -336,6 +366,9 @@ class TrackingEstimator:
     def start(self, world: World, seed: int, model_world: World) -> None:
         """Initialise on the start rope (uncrossed, at rest): its true chain is the prior."""
         self._rng = np.random.default_rng(seed)
+        # The marks' noise from a stream of its own: the cloud's draws stay those of the same
+        # tracker on an unmarked rope, so the two pair episode by episode.
+        self._mark_rng = np.random.default_rng([seed, 1])
         # The tracker knows the rope as the agent's model does: its radius and length.
         self._radius = model_world.params.radius
         self._length = model_world.params.length
@@ -350,8 +383,20 @@ class TrackingEstimator:
         rng = self._rng
         surface = world.observe(max_points=_TRACKER_POINTS, voxel=_TRACKER_VOXEL)
         surface = surface + rng.normal(0.0, self.noise, size=surface.shape)
+        marks = None
+        if self.read_marks:
+            seen = observe_marks(
+                world.rope_nodes(), world.params.radius, rng=self._mark_rng, noise=self.noise
+            )
+            # A mark's centre lies one radius under its top by the rope the agent knows.
+            marks = replace(seen, radius=self._radius)
         nodes = track_update(
-            self._prior, surface, radius=self._radius, rng=rng, anchor_ends=self.anchor_ends
+            self._prior,
+            surface,
+            radius=self._radius,
+            rng=rng,
+            anchor_ends=self.anchor_ends,
+            marks=marks,
         )
         nodes[:, 2] = np.clip(nodes[:, 2], 0.0, _MAX_HEIGHT_RADII * self._radius)
         self._offset[:2] += rng.normal(0.0, self.drift, size=2)
@@ -452,8 +497,7 @@ class VideoTracker(TrackingEstimator):
 def make_estimator(kind: EstimatorKind | str) -> StateEstimator:
     """A fresh estimator of ``kind`` (one per episode worker; `start` resets it per episode)."""
     kind = EstimatorKind.parse(kind)
-    if kind in (EstimatorKind.TRACKER, EstimatorKind.TRACKER_ENDS):
-        return TrackingEstimator(kind=kind, anchor_ends=kind.anchors_ends)
-    if kind in (EstimatorKind.VIDEO, EstimatorKind.VIDEO_ENDS):
-        return VideoTracker(kind=kind, anchor_ends=kind.anchors_ends)
-    return PerfectEstimator()
+    if kind is EstimatorKind.PERFECT:
+        return PerfectEstimator()
+    tracker = VideoTracker if kind.follows_video else TrackingEstimator
+    return tracker(kind=kind, anchor_ends=kind.anchors_ends, read_marks=kind.reads_marks)
