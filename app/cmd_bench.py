@@ -366,7 +366,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "cloud once a step), video (the same tracker following the camera at 30 frames a "
         "second during each motion), or either with _ends (its chain also slid along the rope "
         "to the cloud's two visible ends at each decision) or with _marked (on a rope marked every "
-        "5 cm: its chain also slid along the rope to the marks in view at each decision); the "
+        "5 cm: its chain also moved to the marks in view at each decision); the "
         "trackers need a centreline library (default perfect)",
     )
     add_no_progress_argument(p)

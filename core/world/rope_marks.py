@@ -28,7 +28,7 @@ MARK_DEAD_BAND = 0.005
 
 @dataclass(frozen=True)
 class MarkReading:
-    """The marks in view: their fractions along the rope (J,, increasing), their seen tops
+    """The marks in view: their fractions along the rope (J,), increasing, their seen tops
     (J, 3) and the rope's radius (a mark's centre is one radius under its top)."""
 
     fraction_j: np.ndarray
