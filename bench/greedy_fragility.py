@@ -38,26 +38,12 @@ sys.path.insert(0, str(ROOT))
 from robustness import _outcomes  # noqa: E402
 
 from knotlab.core.machine import machine_line  # noqa: E402
-from knotlab.core.world.rope import segment_feet  # noqa: E402
+from knotlab.core.world.rope import segment_feet, slide_along  # noqa: E402
 
 SYNTHETIC_SLIDE = 0.02  # m: a synthetic estimate's slide along the rope, drawn from U(-x, x)
 SYNTHETIC_NOISE = 0.003  # m: and the noise on each of its node coordinates
 AVERAGED_SLIDES = (-0.02, -0.01, 0.01, 0.02)  # m: the slides Q is averaged over (with 0)
 AVERAGED_NOISE = 0.004  # m: the noise of the four draws Q is averaged over (with none)
-
-
-def slide_along(nodes_k3: np.ndarray, s: float) -> np.ndarray:
-    """The chain with every node moved ``s`` m along it (by arclength; past an end, along the
-    end's own direction): what a tracker's error along the rope does to an estimate."""
-    nodes = np.asarray(nodes_k3, dtype=float)
-    seg = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
-    u = np.concatenate([[0.0], np.cumsum(seg)])
-    t = u + s
-    out = np.column_stack([np.interp(t, u, nodes[:, d]) for d in range(3)])
-    before, after = t < 0, t > u[-1]
-    out[before] = nodes[0] + np.outer(t[before], (nodes[1] - nodes[0]) / seg[0])
-    out[after] = nodes[-1] + np.outer(t[after] - u[-1], (nodes[-1] - nodes[-2]) / seg[-1])
-    return out
 
 
 def on_curve(points_n3: np.ndarray, curve_k3: np.ndarray) -> np.ndarray:

@@ -43,7 +43,8 @@ Estimators:
   5 cm along it, each one told apart from the others, `rope_marks`): at each decision's update
   the camera also reads the marks not hidden under another strand, and the chain moves so that
   its point at each seen mark's place along the rope lies at the mark, short of the camera's
-  noise (the moves interpolated between marks), after the pull. A changed sensor, not a better
+  noise, after the pull (straight between neighbouring marks in view, the tail beyond the last
+  one slid along the chain: `rope_marks.move_to_marks`). A changed sensor, not a better
   algorithm: what knowing which part of the rope lies where is worth.
 
 Same seed, same estimates: a tracker draws its noise and drift from one Generator per episode

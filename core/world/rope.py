@@ -34,6 +34,28 @@ def arc_lengths(nodes_k3: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes_k3, axis=0), axis=1))])
 
 
+def points_at_arc(nodes_k3: np.ndarray, at_n: np.ndarray) -> np.ndarray:
+    """The chain's points at arc lengths ``at_n`` from its first node (N, 3), continued
+    straight along its end links past either end."""
+    nodes = np.asarray(nodes_k3, dtype=float)
+    at = np.asarray(at_n, dtype=float)
+    arc_k = arc_lengths(nodes)
+    out = np.stack([np.interp(at, arc_k, nodes[:, d]) for d in range(3)], axis=1)
+    for outside, end, inner, edge in ((at < 0.0, 0, 1, 0.0), (at > arc_k[-1], -1, -2, arc_k[-1])):
+        if outside.any():
+            step = nodes[end] - nodes[inner]
+            step = step / max(float(np.linalg.norm(step)), 1e-12)
+            out[outside] = nodes[end] + np.outer(np.abs(at[outside] - edge), step)
+    return out
+
+
+def slide_along(nodes_k3: np.ndarray, by: float) -> np.ndarray:
+    """The chain with every node moved ``by`` m along its own curve (positive: towards the last
+    node; past an end, straight on): a tracker's error along the rope."""
+    nodes = np.asarray(nodes_k3, dtype=float)
+    return points_at_arc(nodes, arc_lengths(nodes) + by)
+
+
 def segment_feet(
     points_n3: np.ndarray,
     path_k3: np.ndarray,

@@ -12,8 +12,10 @@ from knotlab.core.world.rope import (
     has_xy_self_intersection,
     perturb_rope,
     perturb_rope_with_info,
+    points_at_arc,
     resample_by_arc_length,
     rope_length,
+    slide_along,
     straight_rope,
 )
 
@@ -119,3 +121,17 @@ def test_segment_feet_finds_each_points_nearest_place_on_every_segment():
     t_open, _, dist_open = segment_feet(points, path, low_m=np.array([-np.inf, 0.0]))
     assert t_open[2, 0] == pytest.approx(-1.0) and dist_open[2, 0] == pytest.approx(0.0)
     assert dist[2, 0] == pytest.approx(1.0)
+
+
+def test_a_chain_slides_along_its_own_curve_and_straight_on_past_its_ends():
+    # An L: 2 links along x, then 2 along y (each 0.1 m).
+    ell = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.2, 0.1, 0], [0.2, 0.2, 0]])
+    assert np.allclose(slide_along(ell, 0.0), ell, rtol=0.0, atol=1e-15)
+    forward = slide_along(ell, 0.15)  # every node 15 cm further along, round the corner
+    assert np.allclose(forward[0], [0.15, 0.0, 0.0]) and np.allclose(forward[1], [0.2, 0.05, 0])
+    assert np.allclose(forward[-1], [0.2, 0.35, 0.0])  # past the end: on along the last link
+    back = slide_along(ell, -0.05)
+    assert np.allclose(back[0], [-0.05, 0.0, 0.0]) and np.allclose(back[3], [0.2, 0.05, 0.0])
+    # Points at arc lengths from the first node: round the corner and straight on past it.
+    at = points_at_arc(ell, np.array([0.0, 0.25, 0.4, -0.1]))
+    assert np.allclose(at, [[0.0, 0, 0], [0.2, 0.05, 0], [0.2, 0.2, 0], [-0.1, 0, 0]])
