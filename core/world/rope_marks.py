@@ -117,10 +117,10 @@ def move_to_marks(nodes_k3: np.ndarray, marks: MarkReading) -> np.ndarray:
     moved = nodes + np.stack(
         [np.interp(fraction_k, fraction_j, move_j3[:, d]) for d in range(3)], axis=1
     )
-    # Two marks a mark's spacing apart hold the rope between them nearly straight (a rope bent to a
-    # 5 cm radius bows 7 mm off a 5 cm chord), while the prior's bend there is
-    # what the marks say is wrong: interpolated moves left the nodes between marks twice as far
-    # off as the nodes at marks, a zigzag along the chain that cost the knot step (measured).
+    # Two neighbouring marks hold the rope between them nearly straight (a rope bent to a 5 cm
+    # radius bows 7 mm off a 5 cm chord), while the prior's bend there is what the marks say is
+    # wrong: interpolated moves left the nodes between marks twice as far off as the nodes at
+    # marks, a zigzag along the chain (docs/robustness.md, "A marked rope").
     place_j3 = on_chain_j3 + move_j3
     for j in range(len(marks) - 1):
         if not marks.neighbours(j):
